@@ -1,0 +1,296 @@
+"""Scenarios as data: the typed, validated description of one multi-drone tracking setup.
+
+A scenario is a YAML file (the paper's Cases 1-3 ship as ``case1``/``case2``/``case3`` in
+``dronefl/scenarios/``). :func:`load_scenario` reads one, rejects anything questionable before
+any work starts, and returns a frozen :class:`Scenario`. Every error is a
+:class:`ScenarioError` whose message is one line naming the file and the field.
+
+The field is worked in parallel east-west *lanes* ``lane_spacing`` m apart (crop rows in
+``crop_field``, alleys between tree rows in ``orchard``); lane ``k`` runs along
+``y = (k + 1/2) * lane_spacing`` between the two headlands.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic.dataclasses import dataclass
+
+ENVIRONMENTS = ("crop_field", "orchard", "open")
+Environment = Literal["crop_field", "orchard", "open"]
+MotionModel = Literal["constant_speed", "random_walk"]
+
+PositiveFloat = Annotated[float, Field(gt=0)]
+NonNegativeFloat = Annotated[float, Field(ge=0)]
+
+_STRICT = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+class ScenarioError(ValueError):
+    """A scenario (or experiment config) file is invalid; the message names file and field."""
+
+
+@dataclass(config=_STRICT)
+class FieldSpec:
+    """The farm: ``width`` x ``height`` m (x east, y north), lanes ``lane_spacing`` m apart,
+    and a ``headland`` strip of that many m at the west and east ends where vehicles turn."""
+
+    width: PositiveFloat = 160.0
+    height: PositiveFloat = 120.0
+    lane_spacing: PositiveFloat = 5.0
+    headland: PositiveFloat = 20.0
+
+    @property
+    def n_lanes(self) -> int:
+        """Number of lanes that fit in the field."""
+        return int(math.floor(self.height / self.lane_spacing + 1e-9))
+
+    def lane_y(self, lane: int) -> float:
+        """North coordinate of lane ``lane``'s centre line, m."""
+        return (lane + 0.5) * self.lane_spacing
+
+
+@dataclass(config=_STRICT)
+class CameraSpec:
+    """Downward pinhole camera: sensor ``width_px`` x ``height_px`` with ``hfov_deg`` horizontal
+    field of view; frames are resized to ``detector_px`` x ``detector_px`` for the detector."""
+
+    width_px: Annotated[int, Field(gt=0)] = 1280
+    height_px: Annotated[int, Field(gt=0)] = 720
+    hfov_deg: Annotated[float, Field(gt=0, lt=180)] = 80.0
+    detector_px: Annotated[int, Field(gt=0)] = 640
+
+
+@dataclass(config=_STRICT)
+class VehicleSpec:
+    """Size of every ground vehicle (a box), m."""
+
+    length: PositiveFloat = 4.0
+    width: PositiveFloat = 2.0
+    height: PositiveFloat = 1.5
+
+
+@dataclass(config=_STRICT)
+class OdometryNoiseSpec:
+    """Standard deviations of the odometry noise: position m, velocity m/s, attitude rad,
+    angular rate rad/s."""
+
+    position: NonNegativeFloat = 0.05
+    velocity: NonNegativeFloat = 0.05
+    attitude: NonNegativeFloat = 0.01
+    rate: NonNegativeFloat = 0.02
+
+
+@dataclass(config=_STRICT)
+class TargetSpec:
+    """One ground vehicle.
+
+    It starts on lane ``lane`` at ``start_x`` m heading ``east`` or ``west`` and follows its
+    boustrophedon path at ``speed`` m/s: along the lane, a U-turn in the headland onto the lane
+    ``lane_shift`` further north, back, and so on, reversing the sweep at the field's edge.
+    ``random_walk`` adds a per-axis N(0, ``walk_std``^2) m/s velocity perturbation re-drawn every
+    ``walk_period`` s; the driver steers back to the path with gain ``path_gain`` 1/s.
+    """
+
+    id: Annotated[int, Field(ge=1)]
+    lane: Annotated[int, Field(ge=0)]
+    start_x: float
+    heading: Literal["east", "west"] = "east"
+    motion: MotionModel = "constant_speed"
+    speed: PositiveFloat = 0.5
+    lane_shift: Annotated[int, Field(ge=1)] = 6
+    walk_std: PositiveFloat = 1.0
+    walk_period: PositiveFloat = 1.0
+    path_gain: PositiveFloat = 0.2
+
+
+@dataclass(config=_STRICT)
+class DroneSpec:
+    """One drone: flies at fixed ``altitude`` m and watches the target ids in ``targets``.
+
+    Horizontal speed is bounded by ``max_speed`` m/s and acceleration by ``max_accel`` m/s^2.
+    ``start`` ``[x, y]`` m defaults to above the centroid of its targets' start positions.
+    """
+
+    id: Annotated[int, Field(ge=1)]
+    altitude: PositiveFloat
+    targets: tuple[int, ...]
+    max_speed: PositiveFloat = 3.0
+    max_accel: PositiveFloat = 2.0
+    start: tuple[float, float] | None = None
+
+
+@dataclass(config=_STRICT)
+class Scenario:
+    """A complete multi-drone tracking setup (SPEC §2). Drones are listed highest first."""
+
+    name: str
+    targets: tuple[TargetSpec, ...]
+    drones: tuple[DroneSpec, ...]
+    description: str = ""
+    environment: Environment = "crop_field"
+    rate_hz: PositiveFloat = 5.0
+    field: FieldSpec = FieldSpec()
+    camera: CameraSpec = CameraSpec()
+    vehicle: VehicleSpec = VehicleSpec()
+    odometry_noise: OdometryNoiseSpec = OdometryNoiseSpec()
+
+    @property
+    def dt(self) -> float:
+        """Simulation step, s."""
+        return 1.0 / self.rate_hz
+
+    @property
+    def target_ids(self) -> tuple[int, ...]:
+        return tuple(t.id for t in self.targets)
+
+    @property
+    def drone_ids(self) -> tuple[int, ...]:
+        return tuple(d.id for d in self.drones)
+
+    def drone(self, drone_id: int) -> DroneSpec:
+        """The drone with id ``drone_id``."""
+        for d in self.drones:
+            if d.id == drone_id:
+                return d
+        raise KeyError(f"no drone {drone_id} in scenario {self.name!r}")
+
+    @model_validator(mode="after")
+    def _check_consistency(self) -> Scenario:
+        _check_scenario(self)
+        return self
+
+
+def _check_scenario(s: Scenario) -> None:
+    """Cross-field checks; each raises ``ValueError('field.path: message')``."""
+    if not s.targets:
+        raise ValueError("targets: at least one target is required")
+    if not s.drones:
+        raise ValueError("drones: at least one drone is required")
+    _check_unique([t.id for t in s.targets], "targets", "id")
+    _check_unique([d.id for d in s.drones], "drones", "id")
+    f = s.field
+    if 2 * f.headland >= f.width:
+        raise ValueError(
+            f"field.headland: two headlands of {f.headland} m do not fit a {f.width} m field"
+        )
+    if f.n_lanes < 1:
+        raise ValueError(f"field.lane_spacing: {f.lane_spacing} m leaves no lane in the field")
+    target_ids = set(s.target_ids)
+    for k, t in enumerate(s.targets):
+        if t.lane >= f.n_lanes:
+            raise ValueError(
+                f"targets[{k}].lane: lane {t.lane} is outside the field (it has {f.n_lanes} lanes)"
+            )
+        if not f.headland <= t.start_x <= f.width - f.headland:
+            raise ValueError(
+                f"targets[{k}].start_x: {t.start_x} m is not between the headlands "
+                f"[{f.headland}, {f.width - f.headland}] m"
+            )
+    altitudes: dict[float, int] = {}
+    for k, d in enumerate(s.drones):
+        if d.altitude in altitudes:
+            raise ValueError(
+                f"drones[{k}].altitude: {d.altitude} m is also drone {altitudes[d.altitude]}'s "
+                "altitude; every drone needs its own"
+            )
+        altitudes[d.altitude] = d.id
+        if d.altitude <= s.vehicle.height:
+            raise ValueError(f"drones[{k}].altitude: {d.altitude} m is not above the vehicles")
+        if not d.targets:
+            raise ValueError(f"drones[{k}].targets: a drone must watch at least one target")
+        _check_unique(list(d.targets), f"drones[{k}]", "targets", what="target")
+        for tid in d.targets:
+            if tid not in target_ids:
+                raise ValueError(f"drones[{k}].targets: target {tid} is not in targets")
+        if d.start is not None and not (
+            0 <= d.start[0] <= f.width and 0 <= d.start[1] <= f.height
+        ):
+            raise ValueError(f"drones[{k}].start: {list(d.start)} is outside the field")
+    for k in range(1, len(s.drones)):
+        if s.drones[k].altitude > s.drones[k - 1].altitude:
+            raise ValueError(
+                f"drones[{k}].altitude: drones must be listed highest first "
+                f"({s.drones[k].altitude} m after {s.drones[k - 1].altitude} m)"
+            )
+    watched = {tid for d in s.drones for tid in d.targets}
+    for k, t in enumerate(s.targets):
+        if t.id not in watched:
+            raise ValueError(f"targets[{k}]: target {t.id} is watched by no drone")
+
+
+def _check_unique(values: list[int], where: str, key: str, what: str = "id") -> None:
+    seen: set[int] = set()
+    for k, v in enumerate(values):
+        if v in seen:
+            path = f"{where}[{k}].{key}" if key == "id" else f"{where}.{key}"
+            raise ValueError(f"{path}: duplicate {what} {v}")
+        seen.add(v)
+
+
+def builtin_scenarios() -> tuple[str, ...]:
+    """Names of the scenarios shipped with the package (``case1``, ``case2``, ``case3``)."""
+    folder = resources.files("dronefl") / "scenarios"
+    return tuple(sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml")))
+
+
+def scenario_path(name_or_path: str | Path) -> Path:
+    """Resolve a built-in scenario name (``case1``) or a path to a YAML file."""
+    text = str(name_or_path)
+    if text in builtin_scenarios():
+        return Path(str(resources.files("dronefl") / "scenarios" / f"{text}.yaml"))
+    path = Path(text)
+    if not path.is_file():
+        known = ", ".join(builtin_scenarios())
+        raise ScenarioError(f"{text}: no such scenario file (built-in scenarios: {known})")
+    return path
+
+
+def load_scenario(name_or_path: str | Path) -> Scenario:
+    """Load and validate a scenario; raises :class:`ScenarioError` naming file and field."""
+    path = scenario_path(name_or_path)
+    try:
+        raw = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" (line {mark.line + 1})" if mark is not None else ""
+        raise ScenarioError(f"{path}: not valid YAML{where}") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ScenarioError(f"{path}: cannot read ({exc})") from None
+    if not isinstance(raw, dict):
+        raise ScenarioError(f"{path}: a scenario must be a mapping of keys to values")
+    return parse_scenario(raw, source=str(path))
+
+
+def parse_scenario(raw: dict, source: str = "<scenario>") -> Scenario:
+    """Validate a scenario given as a mapping (the parsed YAML)."""
+    try:
+        # Round-trip through JSON so that strict validation sees YAML lists as JSON arrays
+        # (accepted for tuple fields) while still refusing '5' for a number.
+        text = json.dumps(raw)
+    except (TypeError, ValueError):
+        raise ScenarioError(f"{source}: holds values that are not plain numbers/strings/lists") from None
+    try:
+        return Scenario.__pydantic_validator__.validate_json(text, strict=True)
+    except ValidationError as exc:
+        raise ScenarioError(f"{source}: {_first_error(exc)}") from None
+
+
+def _first_error(exc: ValidationError) -> str:
+    err = exc.errors()[0]
+    loc = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err["loc"]).lstrip(".")
+    msg = err["msg"]
+    if err["type"] == "extra_forbidden":
+        return f"{loc}: unknown key"
+    if err["type"] == "value_error":
+        # Our own cross-field checks already start with the field path.
+        return msg.removeprefix("Value error, ")
+    got = err.get("input")
+    shown = "" if isinstance(got, dict | list) else f" (got {got!r})"
+    return f"{loc or 'scenario'}: {msg}{shown}"
