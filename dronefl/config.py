@@ -188,6 +188,17 @@ def _check_scenario(s: Scenario) -> None:
             raise ValueError(
                 f"targets[{k}].lane: lane {t.lane} is outside the field (it has {f.n_lanes} lanes)"
             )
+        n_worked = len(range(t.lane % t.lane_shift, f.n_lanes, t.lane_shift))
+        if n_worked < 2:
+            raise ValueError(
+                f"targets[{k}].lane_shift: with a shift of {t.lane_shift} lanes the vehicle has "
+                "no second lane to turn onto"
+            )
+        if t.lane_shift * f.lane_spacing / 2 > f.headland - 1.0:
+            raise ValueError(
+                f"targets[{k}].lane_shift: a U-turn of radius {t.lane_shift * f.lane_spacing / 2}"
+                f" m does not fit the {f.headland} m headland"
+            )
         if not f.headland <= t.start_x <= f.width - f.headland:
             raise ValueError(
                 f"targets[{k}].start_x: {t.start_x} m is not between the headlands "
@@ -286,7 +297,7 @@ def _first_error(exc: ValidationError) -> str:
     err = exc.errors()[0]
     loc = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err["loc"]).lstrip(".")
     msg = err["msg"]
-    if err["type"] == "extra_forbidden":
+    if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
         return f"{loc}: unknown key"
     if err["type"] == "value_error":
         # Our own cross-field checks already start with the field path.

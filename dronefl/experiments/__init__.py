@@ -1,0 +1,1 @@
+"""Experiments: each writes a run folder of JSON, arrays and plots."""

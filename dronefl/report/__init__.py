@@ -1,0 +1,1 @@
+"""Tables and plots (the only place matplotlib is imported)."""

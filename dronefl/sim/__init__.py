@@ -1,0 +1,1 @@
+"""World simulator: environments, targets, drones, camera, scripted pilot."""
