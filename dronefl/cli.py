@@ -95,6 +95,20 @@ def scenarios(
         typer.echo(f"  drone {d.id}: {d.altitude} m, watches {list(d.targets)}")
 
 
+@app.command()
+def demo(out: OutOption = Path("runs/demo")) -> None:
+    """The default experiment: record Case 3 in the crop field for 120 s and plot it.
+
+    Example: dronefl demo --out runs/demo
+    """
+    from dronefl.experiments.simulate import format_summary
+    from dronefl.experiments.simulate import simulate as run
+
+    summary = run(load_scenario("case3"), duration=120.0, seed=0, out=out / "simulate")
+    typer.echo(format_summary(summary))
+    typer.echo(f"wrote {out}/simulate/topdown.png")
+
+
 def main() -> None:
     """Entry point with bad-input errors turned into one line and exit code 2."""
     try:

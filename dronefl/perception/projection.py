@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 from importlib import resources
 
 import numpy as np
@@ -62,14 +63,23 @@ def vehicle_corners(vehicle: VehicleSpec, positions: np.ndarray, headings: np.nd
     ``grid`` points along and across the vehicle span its footprint ((2, 2): the corners);
     ``z`` are fractions of the vehicle height.
     """
-    along = np.linspace(-vehicle.length / 2, vehicle.length / 2, grid[0])
-    across = np.linspace(-vehicle.width / 2, vehicle.width / 2, grid[1])
-    a, c, h = np.meshgrid(along, across, np.asarray(z) * vehicle.height, indexing="ij")
-    local = np.stack([a.ravel(), c.ravel(), h.ravel()], axis=-1)  # (P, 3)
+    local = _local_points(vehicle.length, vehicle.width, vehicle.height, tuple(z), grid)
     cos_h, sin_h = np.cos(headings)[:, None], np.sin(headings)[:, None]  # (N, 1)
     x = positions[:, None, 0] + cos_h * local[:, 0] - sin_h * local[:, 1]
     y = positions[:, None, 1] + sin_h * local[:, 0] + cos_h * local[:, 1]
-    return np.stack([x, y, np.broadcast_to(local[:, 2], x.shape)], axis=-1)
+    out = np.empty((*x.shape, 3))
+    out[..., 0], out[..., 1], out[..., 2] = x, y, local[:, 2]
+    return out
+
+
+@lru_cache(maxsize=32)
+def _local_points(length: float, width: float, height: float, z: tuple[float, ...],
+                  grid: tuple[int, int]) -> np.ndarray:
+    """Points on a vehicle in its own frame (x forward, y left, z up): ``(P, 3)`` m."""
+    along = np.linspace(-length / 2, length / 2, grid[0])
+    across = np.linspace(-width / 2, width / 2, grid[1])
+    a, c, h = np.meshgrid(along, across, np.asarray(z) * height, indexing="ij")
+    return np.stack([a.ravel(), c.ravel(), h.ravel()], axis=-1)
 
 
 def vehicle_boxes(camera: PinholeCamera, vehicle: VehicleSpec, camera_position: np.ndarray,

@@ -75,19 +75,19 @@ class FarmEnvironment:
         col0 = np.round((mid[:, 0] - self.field.headland) / self.tree_spacing)[:, None]
         cols = col0 + np.array([-1, 0, 1])  # (R, 3)
         col_ok = (cols >= 0) & (cols < self.tree_x.size)
-        tx = self.field.headland + cols * self.tree_spacing  # (R, 3)
-        ty = rows * spacing  # (R, 4)
-        centres = np.stack(np.broadcast_arrays(tx[:, None, :], ty[:, :, None]), axis=-1)
+        tx = (self.field.headland + cols * self.tree_spacing)[:, None, :]  # (R, 1, 3)
+        ty = (rows * spacing)[:, :, None]  # (R, 4, 1)
         valid = row_ok[:, :, None] & col_ok[:, None, :]  # (R, 4, 3)
-        dist = _segment_point_distance(a[:, None, None, :], b[:, None, None, :], centres)
+        dist = _segment_point_distance(a[:, None, None, :], b[:, None, None, :], tx, ty)
         blocked = ((dist < self.canopy_radius) & valid & (s1 > s0)[:, None, None]).any(axis=(1, 2))
         return ~blocked.reshape(shape)
 
 
-def _segment_point_distance(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Distance from points ``c`` to segments ``a -> b`` (broadcast over leading axes), m."""
-    ab = b - a
-    denom = np.maximum((ab * ab).sum(-1), 1e-12)
-    s = np.clip(((c - a) * ab).sum(-1) / denom, 0.0, 1.0)
-    closest = a + s[..., None] * ab
-    return np.linalg.norm(c - closest, axis=-1)
+def _segment_point_distance(a: np.ndarray, b: np.ndarray, cx: np.ndarray,
+                            cy: np.ndarray) -> np.ndarray:
+    """Distance from points ``(cx, cy)`` to segments ``a -> b`` (``(..., 2)``; all arguments
+    broadcast over the leading axes), m."""
+    abx, aby = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]
+    acx, acy = cx - a[..., 0], cy - a[..., 1]
+    s = np.clip((acx * abx + acy * aby) / np.maximum(abx * abx + aby * aby, 1e-12), 0.0, 1.0)
+    return np.hypot(acx - s * abx, acy - s * aby)
