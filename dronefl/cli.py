@@ -30,7 +30,8 @@ def fail(message: str) -> typer.Exit:
 
 
 ScenarioOption = Annotated[
-    str, typer.Option("--scenario", "-s", help="Built-in scenario (case1|case2|case3) or YAML path.")
+    str,
+    typer.Option("--scenario", "-s", help="Built-in scenario (case1|case2|case3) or YAML path."),
 ]
 EnvOption = Annotated[
     str | None,
@@ -87,8 +88,10 @@ def scenarios(
         return
     spec = load_scenario(name)
     typer.echo(f"{spec.name}: {spec.description} (valid)")
-    typer.echo(f"  field {spec.field.width} x {spec.field.height} m, {spec.field.n_lanes} lanes, "
-               f"{spec.environment}, {spec.rate_hz} Hz")
+    typer.echo(
+        f"  field {spec.field.width} x {spec.field.height} m, {spec.field.n_lanes} lanes, "
+        f"{spec.environment}, {spec.rate_hz} Hz"
+    )
     for t in spec.targets:
         typer.echo(f"  target {t.id}: lane {t.lane}, {t.motion} {t.speed} m/s")
     for d in spec.drones:

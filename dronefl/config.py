@@ -220,9 +220,7 @@ def _check_scenario(s: Scenario) -> None:
         for tid in d.targets:
             if tid not in target_ids:
                 raise ValueError(f"drones[{k}].targets: target {tid} is not in targets")
-        if d.start is not None and not (
-            0 <= d.start[0] <= f.width and 0 <= d.start[1] <= f.height
-        ):
+        if d.start is not None and not (0 <= d.start[0] <= f.width and 0 <= d.start[1] <= f.height):
             raise ValueError(f"drones[{k}].start: {list(d.start)} is outside the field")
     for k in range(1, len(s.drones)):
         if s.drones[k].altitude > s.drones[k - 1].altitude:
@@ -286,7 +284,9 @@ def parse_scenario(raw: dict, source: str = "<scenario>") -> Scenario:
         # (accepted for tuple fields) while still refusing '5' for a number.
         text = json.dumps(raw)
     except (TypeError, ValueError):
-        raise ScenarioError(f"{source}: holds values that are not plain numbers/strings/lists") from None
+        raise ScenarioError(
+            f"{source}: holds values that are not plain numbers/strings/lists"
+        ) from None
     try:
         return Scenario.__pydantic_validator__.validate_json(text, strict=True)
     except ValidationError as exc:

@@ -93,8 +93,9 @@ class OnboardLog:
             boxes=self.boxes.astype(np.float32),
             detected=self.detected.astype(bool),
             confidence=self.confidence.astype(np.float32),
-            meta=np.array(json.dumps({**self.meta, "drone_id": self.drone_id,
-                                      "altitude": self.altitude})),
+            meta=np.array(
+                json.dumps({**self.meta, "drone_id": self.drone_id, "altitude": self.altitude})
+            ),
         )
 
     @classmethod
@@ -183,10 +184,28 @@ class GroundTruth:
         return cls(**{k: data[k] for k in _TRUTH_KEYS})
 
 
-_ONBOARD_KEYS = ("t", "odometry", "target_ids", "assigned", "boxes", "detected", "confidence",
-                 "meta")
-_TRUTH_KEYS = ("t", "target_ids", "target_position", "target_velocity", "target_heading",
-               "drone_ids", "drone_position", "drone_velocity", "drone_altitude", "meta")
+_ONBOARD_KEYS = (
+    "t",
+    "odometry",
+    "target_ids",
+    "assigned",
+    "boxes",
+    "detected",
+    "confidence",
+    "meta",
+)
+_TRUTH_KEYS = (
+    "t",
+    "target_ids",
+    "target_position",
+    "target_velocity",
+    "target_heading",
+    "drone_ids",
+    "drone_position",
+    "drone_velocity",
+    "drone_altitude",
+    "meta",
+)
 
 
 def _read_npz(path: Path, expected_format: str, keys: tuple[str, ...]) -> dict[str, Any]:

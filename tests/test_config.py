@@ -51,9 +51,21 @@ def test_cli_reports_bad_scenario_in_one_line_with_exit_code_2(tmp_path):
     path = BAD / "duplicate_altitude.yaml"
     out = tmp_path / "run"
     result = subprocess.run(
-        [sys.executable, "-c", "from dronefl.cli import main; main()", "simulate",
-         "--scenario", str(path), "--duration", "1", "--out", str(out)],
-        capture_output=True, text=True, check=False,
+        [
+            sys.executable,
+            "-c",
+            "from dronefl.cli import main; main()",
+            "simulate",
+            "--scenario",
+            str(path),
+            "--duration",
+            "1",
+            "--out",
+            str(out),
+        ],
+        capture_output=True,
+        text=True,
+        check=False,
     )
     assert result.returncode == 2
     lines = result.stderr.strip().splitlines()

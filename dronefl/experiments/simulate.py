@@ -29,9 +29,17 @@ def scenario_dict(scenario: Scenario) -> dict:
     return TypeAdapter(Scenario).dump_python(scenario, mode="json")
 
 
-def simulate(scenario: Scenario, *, environment: Environment | None = None,
-             duration: float = 600.0, seed: int = 0, out: Path, detector: str = "projection",
-             progress: bool = True, plot: bool = True) -> dict:
+def simulate(
+    scenario: Scenario,
+    *,
+    environment: Environment | None = None,
+    duration: float = 600.0,
+    seed: int = 0,
+    out: Path,
+    detector: str = "projection",
+    progress: bool = True,
+    plot: bool = True,
+) -> dict:
     """Fly the scenario for ``duration`` s under the :class:`PilotController` and record it.
 
     Returns the summary that is also written to ``out/summary.json``: ``sim_seconds``,
@@ -58,15 +66,17 @@ def simulate(scenario: Scenario, *, environment: Environment | None = None,
     drone_pos, drone_vel = np.zeros((n_steps, m, 2)), np.zeros((n_steps, m, 2))
 
     started = time.perf_counter()
-    with progress_bar(f"simulate {scenario.name} ({world.environment.kind})",
-                      n_steps, enabled=progress) as advance:
+    with progress_bar(
+        f"simulate {scenario.name} ({world.environment.kind})", n_steps, enabled=progress
+    ) as advance:
         for k in range(n_steps):
             t[k] = world.t
             target_pos[k], target_vel[k] = world.targets.position, world.targets.velocity
             target_heading[k] = world.targets.heading
             drone_pos[k], drone_vel[k] = world.drones.position, world.drones.velocity
-            for i, (odo, view) in enumerate(zip(world.odometry(), world.camera_views(),
-                                                strict=True)):
+            for i, (odo, view) in enumerate(
+                zip(world.odometry(), world.camera_views(), strict=True)
+            ):
                 odometry[i, k] = odo.vector
                 for d in det.detect(view):
                     j = column[d.target_id]
@@ -76,47 +86,90 @@ def simulate(scenario: Scenario, *, environment: Environment | None = None,
             advance()
     wall = time.perf_counter() - started
 
-    meta = {"scenario": scenario_dict(scenario), "environment": world.environment.kind,
-            "seed": seed, "rate_hz": scenario.rate_hz, "detector": detector}
+    meta = {
+        "scenario": scenario_dict(scenario),
+        "environment": world.environment.kind,
+        "seed": seed,
+        "rate_hz": scenario.rate_hz,
+        "detector": detector,
+    }
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     drones_summary = []
     for i, spec in enumerate(scenario.drones):
         assigned = np.isin(target_ids, spec.targets)
-        OnboardLog(spec.id, spec.altitude, t, odometry[i].astype(np.float32), target_ids,
-                   assigned, boxes[i], detected[i], confidence[i], meta).save(
-                       out / f"drone_{spec.id}.npz")
+        OnboardLog(
+            spec.id,
+            spec.altitude,
+            t,
+            odometry[i].astype(np.float32),
+            target_ids,
+            assigned,
+            boxes[i],
+            detected[i],
+            confidence[i],
+            meta,
+        ).save(out / f"drone_{spec.id}.npz")
         per_target = {str(tid): float(detected[i, :, column[tid]].mean()) for tid in spec.targets}
-        drones_summary.append({
-            "drone_id": spec.id, "altitude": spec.altitude, "targets": list(spec.targets),
-            "detection_rate": float(detected[i][:, assigned].mean()),
-            "detection_rate_per_target": per_target,
-        })
-    truth = GroundTruth(t, target_ids, target_pos, target_vel, target_heading, world.drones.ids,
-                        drone_pos, drone_vel, world.drones.altitude, meta)
+        drones_summary.append(
+            {
+                "drone_id": spec.id,
+                "altitude": spec.altitude,
+                "targets": list(spec.targets),
+                "detection_rate": float(detected[i][:, assigned].mean()),
+                "detection_rate_per_target": per_target,
+            }
+        )
+    truth = GroundTruth(
+        t,
+        target_ids,
+        target_pos,
+        target_vel,
+        target_heading,
+        world.drones.ids,
+        drone_pos,
+        drone_vel,
+        world.drones.altitude,
+        meta,
+    )
     truth.save(out / "ground_truth.npz")
     summary = {
-        "scenario": scenario.name, "environment": world.environment.kind, "seed": seed,
-        "detector": detector, "steps": n_steps, "sim_seconds": n_steps * scenario.dt,
-        "wall_seconds": wall, "realtime_factor": n_steps * scenario.dt / max(wall, 1e-9),
+        "scenario": scenario.name,
+        "environment": world.environment.kind,
+        "seed": seed,
+        "detector": detector,
+        "steps": n_steps,
+        "sim_seconds": n_steps * scenario.dt,
+        "wall_seconds": wall,
+        "realtime_factor": n_steps * scenario.dt / max(wall, 1e-9),
         "drones": drones_summary,
     }
     atomic_write_json(out / "summary.json", summary)
     if plot:
         from dronefl.report.topdown import plot_topdown
 
-        plot_topdown(scenario, world.environment, world.camera, truth, out / "topdown.png",
-                     detection_rates={d["drone_id"]: d["detection_rate"] for d in drones_summary})
+        plot_topdown(
+            scenario,
+            world.environment,
+            world.camera,
+            truth,
+            out / "topdown.png",
+            detection_rates={d["drone_id"]: d["detection_rate"] for d in drones_summary},
+        )
     return summary
 
 
 def format_summary(summary: dict) -> str:
     """Plain-text table of a :func:`simulate` summary."""
-    lines = [f"{summary['scenario']} in {summary['environment']} (seed {summary['seed']}, "
-             f"{summary['detector']} detector): {summary['sim_seconds']:.0f} s simulated in "
-             f"{summary['wall_seconds']:.1f} s ({summary['realtime_factor']:.0f}x real time)",
-             "drone  altitude  targets        detection rate"]
+    lines = [
+        f"{summary['scenario']} in {summary['environment']} (seed {summary['seed']}, "
+        f"{summary['detector']} detector): {summary['sim_seconds']:.0f} s simulated in "
+        f"{summary['wall_seconds']:.1f} s ({summary['realtime_factor']:.0f}x real time)",
+        "drone  altitude  targets        detection rate",
+    ]
     for d in summary["drones"]:
-        lines.append(f"{d['drone_id']:>5}  {d['altitude']:>6.1f} m  "
-                     f"{json.dumps(d['targets']):<13}  {d['detection_rate']:.3f}")
+        lines.append(
+            f"{d['drone_id']:>5}  {d['altitude']:>6.1f} m  "
+            f"{json.dumps(d['targets']):<13}  {d['detection_rate']:.3f}"
+        )
     return "\n".join(lines)

@@ -16,8 +16,9 @@ def make_detector(name: str, world: World) -> Detector:
     if name == "projection":
         from dronefl.perception.projection import ProjectionDetector
 
-        return ProjectionDetector(world.camera, world.scenario.vehicle, world.environment,
-                                  world.rng("detector"))
+        return ProjectionDetector(
+            world.camera, world.scenario.vehicle, world.environment, world.rng("detector")
+        )
     if name == "yolo":
         from dronefl.perception.yolo import YoloDetector
 

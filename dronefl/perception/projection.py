@@ -55,9 +55,13 @@ class ProjectionNoise:
         return cls(**{k: float(params[k]) for k in asdict(cls())})
 
 
-def vehicle_corners(vehicle: VehicleSpec, positions: np.ndarray, headings: np.ndarray,
-                    z: tuple[float, ...] = (0.0, 1.0),
-                    grid: tuple[int, int] = (2, 2)) -> np.ndarray:
+def vehicle_corners(
+    vehicle: VehicleSpec,
+    positions: np.ndarray,
+    headings: np.ndarray,
+    z: tuple[float, ...] = (0.0, 1.0),
+    grid: tuple[int, int] = (2, 2),
+) -> np.ndarray:
     """World points on each vehicle's box: ``(N, grid[0] * grid[1] * len(z), 3)`` m.
 
     ``grid`` points along and across the vehicle span its footprint ((2, 2): the corners);
@@ -73,8 +77,9 @@ def vehicle_corners(vehicle: VehicleSpec, positions: np.ndarray, headings: np.nd
 
 
 @lru_cache(maxsize=32)
-def _local_points(length: float, width: float, height: float, z: tuple[float, ...],
-                  grid: tuple[int, int]) -> np.ndarray:
+def _local_points(
+    length: float, width: float, height: float, z: tuple[float, ...], grid: tuple[int, int]
+) -> np.ndarray:
     """Points on a vehicle in its own frame (x forward, y left, z up): ``(P, 3)`` m."""
     along = np.linspace(-length / 2, length / 2, grid[0])
     across = np.linspace(-width / 2, width / 2, grid[1])
@@ -82,9 +87,14 @@ def _local_points(length: float, width: float, height: float, z: tuple[float, ..
     return np.stack([a.ravel(), c.ravel(), h.ravel()], axis=-1)
 
 
-def vehicle_boxes(camera: PinholeCamera, vehicle: VehicleSpec, camera_position: np.ndarray,
-                  yaw: float, positions: np.ndarray,
-                  headings: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def vehicle_boxes(
+    camera: PinholeCamera,
+    vehicle: VehicleSpec,
+    camera_position: np.ndarray,
+    yaw: float,
+    positions: np.ndarray,
+    headings: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
     """Exact image boxes of vehicles at ``positions`` ``(N, 2)`` m with ``headings`` ``(N,)``.
 
     Returns ``boxes`` ``(N, 4)`` normalised ``(cx, cy, w, h)`` of the hull clipped to the image
@@ -107,9 +117,14 @@ class ProjectionDetector(Detector):
 
     name = "projection"
 
-    def __init__(self, camera: PinholeCamera, vehicle: VehicleSpec,
-                 environment: FarmEnvironment, rng: np.random.Generator,
-                 noise: ProjectionNoise | None = None) -> None:
+    def __init__(
+        self,
+        camera: PinholeCamera,
+        vehicle: VehicleSpec,
+        environment: FarmEnvironment,
+        rng: np.random.Generator,
+        noise: ProjectionNoise | None = None,
+    ) -> None:
         self.camera = camera
         self.vehicle = vehicle
         self.environment = environment
@@ -122,16 +137,18 @@ class ProjectionDetector(Detector):
             return ()
         positions = np.array([t.position for t in view.targets])
         headings = np.array([t.heading for t in view.targets])
-        boxes, inside = vehicle_boxes(self.camera, self.vehicle, view.camera_position,
-                                      view.yaw, positions, headings)
+        boxes, inside = vehicle_boxes(
+            self.camera, self.vehicle, view.camera_position, view.yaw, positions, headings
+        )
         roof = vehicle_corners(self.vehicle, positions, headings, z=(1.0,), grid=(5, 3))
         unoccluded = self.environment.visible(view.camera_position, roof).mean(axis=-1)
         visible = inside * unoccluded
         centre = np.concatenate([positions, np.full((len(positions), 1), 0.5)], axis=-1)
         slant = np.linalg.norm(centre - view.camera_position, axis=-1)
         n = self.noise
-        p_miss = np.clip(n.miss_base + n.miss_per_m * np.maximum(0.0, slant - n.miss_range0),
-                         0.0, 1.0)
+        p_miss = np.clip(
+            n.miss_base + n.miss_per_m * np.maximum(0.0, slant - n.miss_range0), 0.0, 1.0
+        )
         # Draw a fixed number of variates per call so that the stream stays aligned.
         draw_miss = self.rng.random(len(positions))
         jitter = self.rng.normal(size=(len(positions), 4))
@@ -144,8 +161,8 @@ class ProjectionDetector(Detector):
         noisy[:, 2:] = np.clip(noisy[:, 2:], 1.0 / side, 1.0)
         confidence = np.clip(0.5 + 0.45 * visible - 0.003 * slant, 0.05, 0.99)
         return tuple(
-            Detection(view.targets[k].target_id, tuple(float(v) for v in noisy[k]),
-                      float(confidence[k]))
+            Detection(
+                view.targets[k].target_id, tuple(float(v) for v in noisy[k]), float(confidence[k])
+            )
             for k in np.flatnonzero(detected)
         )
-

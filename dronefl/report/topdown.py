@@ -47,9 +47,15 @@ def draw_field(ax: plt.Axes, env: FarmEnvironment) -> None:
     ax.set_ylabel("y (north), m")
 
 
-def plot_topdown(scenario: Scenario, env: FarmEnvironment, camera: PinholeCamera,
-                 truth: GroundTruth, path: Path, detection_rates: dict[int, float] | None = None,
-                 n_footprints: int = 4) -> Path:
+def plot_topdown(
+    scenario: Scenario,
+    env: FarmEnvironment,
+    camera: PinholeCamera,
+    truth: GroundTruth,
+    path: Path,
+    detection_rates: dict[int, float] | None = None,
+    n_footprints: int = 4,
+) -> Path:
     """Write the top-down PNG of a recorded run to ``path``.
 
     Vehicle paths are solid (a triangle marks the start, a dot the end), drone paths dashed;
@@ -69,16 +75,39 @@ def plot_topdown(scenario: Scenario, env: FarmEnvironment, camera: PinholeCamera
         colour = DRONE_COLOURS[i % len(DRONE_COLOURS)]
         altitude = float(truth.drone_altitude[i])
         rate = "" if detection_rates is None else f", det. {detection_rates[int(did)]:.2f}"
-        ax.plot(xy[:, 0], xy[:, 1], "--", color=colour, lw=1.2,
-                label=f"drone {did} ({altitude:.0f} m{rate})")
+        ax.plot(
+            xy[:, 0],
+            xy[:, 1],
+            "--",
+            color=colour,
+            lw=1.2,
+            label=f"drone {did} ({altitude:.0f} m{rate})",
+        )
         hx, hy = camera.footprint_half_extent(altitude)
         for k in times:
-            ax.add_patch(Rectangle((xy[k, 0] - hx, xy[k, 1] - hy), 2 * hx, 2 * hy, fill=False,
-                                   edgecolor=colour, lw=0.8, alpha=0.7))
-            ax.text(xy[k, 0] - hx + 0.8, xy[k, 1] + hy - 3.2, f"{truth.t[k]:.0f}s",
-                    color=colour, fontsize=6, clip_on=True)
+            ax.add_patch(
+                Rectangle(
+                    (xy[k, 0] - hx, xy[k, 1] - hy),
+                    2 * hx,
+                    2 * hy,
+                    fill=False,
+                    edgecolor=colour,
+                    lw=0.8,
+                    alpha=0.7,
+                )
+            )
+            ax.text(
+                xy[k, 0] - hx + 0.8,
+                xy[k, 1] + hy - 3.2,
+                f"{truth.t[k]:.0f}s",
+                color=colour,
+                fontsize=6,
+                clip_on=True,
+            )
     duration = truth.t[-1] + (truth.t[1] - truth.t[0] if len(truth.t) > 1 else 0.0)
-    ax.set_title(f"{scenario.name} in {env.kind}: {duration:.0f} s, "
-                 f"camera footprints (boxes) every {duration / max(n_footprints - 1, 1):.0f} s")
+    ax.set_title(
+        f"{scenario.name} in {env.kind}: {duration:.0f} s, "
+        f"camera footprints (boxes) every {duration / max(n_footprints - 1, 1):.0f} s"
+    )
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
     return save_figure(fig, path)

@@ -69,8 +69,9 @@ class PinholeCamera:
         v = 0.5 + f * y_img / (depth * self.height_px)
         return np.stack([u, v], axis=-1), depth
 
-    def ground_point(self, uv: np.ndarray, camera_position: np.ndarray, yaw: float = 0.0,
-                     ground_z: float = 0.0) -> np.ndarray:
+    def ground_point(
+        self, uv: np.ndarray, camera_position: np.ndarray, yaw: float = 0.0, ground_z: float = 0.0
+    ) -> np.ndarray:
         """Back-project normalised image points ``(..., 2)`` onto the plane ``z = ground_z``;
         returns world ``(..., 2)`` m. The inverse of :meth:`project` for that plane."""
         depth = camera_position[2] - ground_z

@@ -59,11 +59,14 @@ class DroneTeam:
         v_new[outside_high & (v_new > 0)] = 0.0
         self.acceleration = (v_new - self.velocity) / dt
         self.position, self.velocity = p_new, v_new
-        attitude = np.stack([
-            -np.arctan(self.acceleration[:, 1] / GRAVITY),
-            np.arctan(self.acceleration[:, 0] / GRAVITY),
-            np.zeros(len(self.ids)),
-        ], axis=-1)
+        attitude = np.stack(
+            [
+                -np.arctan(self.acceleration[:, 1] / GRAVITY),
+                np.arctan(self.acceleration[:, 0] / GRAVITY),
+                np.zeros(len(self.ids)),
+            ],
+            axis=-1,
+        )
         self._rates = (attitude - self._attitude) / dt
         self._attitude = attitude
 
@@ -75,12 +78,15 @@ class DroneTeam:
         """Noisy 12-dim odometry of every drone at time ``t`` (s)."""
         noise = self.scenario.odometry_noise
         m = len(self.ids)
-        truth = np.concatenate([
-            self.camera_positions(),
-            np.concatenate([self.velocity, np.zeros((m, 1))], axis=-1),
-            self._attitude,
-            self._rates,
-        ], axis=-1)
+        truth = np.concatenate(
+            [
+                self.camera_positions(),
+                np.concatenate([self.velocity, np.zeros((m, 1))], axis=-1),
+                self._attitude,
+                self._rates,
+            ],
+            axis=-1,
+        )
         std = np.repeat([noise.position, noise.velocity, noise.attitude, noise.rate], 3)
         measured = truth + self.rng.normal(0.0, 1.0, size=(m, ODOMETRY_DIM)) * std
         return [Odometry(t, measured[i]) for i in range(m)]
@@ -88,7 +94,12 @@ class DroneTeam:
     def states(self) -> tuple[DroneState, ...]:
         """Current true states, in scenario order."""
         return tuple(
-            DroneState(int(i), self.position[k].copy(), self.velocity[k].copy(),
-                       float(self.altitude[k]), self.acceleration[k].copy())
+            DroneState(
+                int(i),
+                self.position[k].copy(),
+                self.velocity[k].copy(),
+                float(self.altitude[k]),
+                self.acceleration[k].copy(),
+            )
             for k, i in enumerate(self.ids)
         )

@@ -83,8 +83,9 @@ class FarmEnvironment:
         return ~blocked.reshape(shape)
 
 
-def _segment_point_distance(a: np.ndarray, b: np.ndarray, cx: np.ndarray,
-                            cy: np.ndarray) -> np.ndarray:
+def _segment_point_distance(
+    a: np.ndarray, b: np.ndarray, cx: np.ndarray, cy: np.ndarray
+) -> np.ndarray:
     """Distance from points ``(cx, cy)`` to segments ``a -> b`` (``(..., 2)``; all arguments
     broadcast over the leading axes), m."""
     abx, aby = b[..., 0] - a[..., 0], b[..., 1] - a[..., 1]

@@ -34,6 +34,7 @@ class PilotController:
             pts = world.targets.position[cols]
             centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
             centre_velocity = world.targets.velocity[cols].mean(axis=0)
-            commands[k] = (self.kp * (centre - world.drones.position[k])
-                           + self.kd * (centre_velocity - world.drones.velocity[k]))
+            commands[k] = self.kp * (centre - world.drones.position[k]) + self.kd * (
+                centre_velocity - world.drones.velocity[k]
+            )
         return commands

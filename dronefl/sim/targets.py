@@ -90,8 +90,10 @@ def _u_turn(x_end: float, y_from: float, y_to: float, bulge: float) -> np.ndarra
     # The angle runs from +-pi/2 to -+pi/2; |cos| puts the arc on the headland side.
     start = math.copysign(math.pi / 2, y_from - centre_y)
     angles = np.linspace(start, -start, n)
-    return np.stack([x_end + bulge * radius * np.abs(np.cos(angles)),
-                     centre_y + radius * np.sin(angles)], axis=-1)
+    return np.stack(
+        [x_end + bulge * radius * np.abs(np.cos(angles)), centre_y + radius * np.sin(angles)],
+        axis=-1,
+    )
 
 
 class TargetFleet:
@@ -140,7 +142,8 @@ class TargetFleet:
     def states(self) -> tuple[TargetState, ...]:
         """Current true states of all vehicles, in scenario order."""
         return tuple(
-            TargetState(int(i), self.position[j].copy(), self.velocity[j].copy(),
-                        float(self.heading[j]))
+            TargetState(
+                int(i), self.position[j].copy(), self.velocity[j].copy(), float(self.heading[j])
+            )
             for j, i in enumerate(self.ids)
         )

@@ -31,8 +31,9 @@ class World:
     and advances by ``dt = 1 / rate_hz`` per :meth:`step`.
     """
 
-    def __init__(self, scenario: Scenario, environment: Environment | None = None,
-                 seed: int = 0) -> None:
+    def __init__(
+        self, scenario: Scenario, environment: Environment | None = None, seed: int = 0
+    ) -> None:
         self.scenario = scenario
         self.seed = seed
         self.environment = FarmEnvironment(environment or scenario.environment, scenario.field)

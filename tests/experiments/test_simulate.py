@@ -21,8 +21,14 @@ def recorded(tmp_path_factory):
 def test_run_folder_has_logs_truth_summary_and_plot(recorded):
     out, summary = recorded
     names = {p.name for p in out.iterdir()}
-    assert {"drone_1.npz", "drone_2.npz", "drone_3.npz", "ground_truth.npz", "summary.json",
-            "topdown.png"} <= names
+    assert {
+        "drone_1.npz",
+        "drone_2.npz",
+        "drone_3.npz",
+        "ground_truth.npz",
+        "summary.json",
+        "topdown.png",
+    } <= names
     assert not [n for n in names if n.endswith(".tmp")]
     on_disk = json.loads((out / "summary.json").read_text())
     assert on_disk["sim_seconds"] == pytest.approx(30.0)
@@ -43,7 +49,8 @@ def test_logs_hold_boxes_and_odometry_never_images(recorded):
     assert truth.target_position.shape == (150, 3, 2)
     # The summary's detection rate is the detection mask's mean over the assigned targets.
     assert summary["drones"][1]["detection_rate"] == pytest.approx(
-        log.detected[:, log.assigned].mean())
+        log.detected[:, log.assigned].mean()
+    )
 
 
 def test_odometry_in_the_log_is_the_drone_truth_plus_small_noise(recorded):
@@ -91,7 +98,17 @@ def test_inconsistent_shapes_are_rejected(recorded, tmp_path):
     out, _ = recorded
     log = OnboardLog.load(out / "drone_1.npz")
     bad = tmp_path / "drone_1.npz"
-    OnboardLog(log.drone_id, log.altitude, log.t, log.odometry[:-1], log.target_ids,
-               log.assigned, log.boxes, log.detected, log.confidence, log.meta).save(bad)
+    OnboardLog(
+        log.drone_id,
+        log.altitude,
+        log.t,
+        log.odometry[:-1],
+        log.target_ids,
+        log.assigned,
+        log.boxes,
+        log.detected,
+        log.confidence,
+        log.meta,
+    ).save(bad)
     with pytest.raises(LogError, match="'odometry' has shape"):
         OnboardLog.load(bad)

@@ -24,8 +24,9 @@ EXACT = ProjectionNoise(center_px=0.0, size_frac=0.0, miss_base=0.0, miss_per_m=
 def boxes_at(altitude, positions, headings=None):
     positions = np.atleast_2d(positions).astype(float)
     headings = np.zeros(len(positions)) if headings is None else np.asarray(headings)
-    return vehicle_boxes(CAMERA, VEHICLE, np.array([50.0, 50.0, altitude]), 0.0, positions,
-                         headings)
+    return vehicle_boxes(
+        CAMERA, VEHICLE, np.array([50.0, 50.0, altitude]), 0.0, positions, headings
+    )
 
 
 def test_focal_length_and_footprint():
@@ -113,8 +114,9 @@ def test_canopies_hide_more_of_a_vehicle_seen_at_a_slant():
 
 
 def test_miss_probability_grows_with_range():
-    noise = ProjectionNoise(center_px=0.0, size_frac=0.0, miss_base=0.0, miss_per_m=0.01,
-                            miss_range0=20.0)
+    noise = ProjectionNoise(
+        center_px=0.0, size_frac=0.0, miss_base=0.0, miss_per_m=0.01, miss_range0=20.0
+    )
     det = detector(noise=noise, seed=1)
     near = np.mean([len(det.detect(view_of([50, 50], [50, 50, 20.0]))) for _ in range(400)])
     far = np.mean([len(det.detect(view_of([50, 50], [50, 50, 70.0]))) for _ in range(400)])
