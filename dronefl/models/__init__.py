@@ -1,1 +1,0 @@
-"""The on-drone trajectory predictor: model, training windows, local training."""
