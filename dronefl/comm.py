@@ -1,0 +1,140 @@
+"""Wire formats of the per-step messages between drones and the cloud, and byte accounting.
+
+Every 0.2 s each drone sends its predictions up and receives its control down. Both are packed
+little-endian with :mod:`struct` so that the bytes counted are the bytes a radio would carry
+(no framing or transport headers are counted):
+
+``PredictionMessage`` (drone -> cloud), ``9 + 10 n L_f`` bytes for ``n`` predicted targets
+over a horizon of ``L_f`` steps::
+
+    u8 version | u8 drone_id | u32 step | u8 horizon L_f | u16 count = n L_f
+    count x ( u8 target_id | u8 steps_ahead | f32 x (m) | f32 y (m) )
+
+``ControlMessage`` (cloud -> drone), 14 bytes::
+
+    u8 version | u8 drone_id | u32 step | f32 ax (m/s^2) | f32 ay (m/s^2)
+
+Model weights exchanged by federated learning are counted separately by :mod:`dronefl.fl`.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections import defaultdict
+from dataclasses import dataclass
+
+import numpy as np
+
+WIRE_VERSION = 1
+_PRED_HEAD = struct.Struct("<BBIBH")
+_PRED_ITEM = struct.Struct("<BBff")
+_CONTROL = struct.Struct("<BBIff")
+
+
+class WireError(ValueError):
+    """A message could not be decoded (wrong version, length or content)."""
+
+
+@dataclass(frozen=True)
+class PredictionMessage:
+    """One drone's predictions of its targets' next positions at one step.
+
+    ``target_ids`` ``(n,)``; ``positions`` ``(n, L_f, 2)`` m in the world frame.
+    """
+
+    drone_id: int
+    step: int
+    target_ids: tuple[int, ...]
+    positions: np.ndarray
+
+    def encode(self) -> bytes:
+        """Pack to bytes (format in the module docstring)."""
+        n, horizon = len(self.target_ids), self.positions.shape[1] if len(self.target_ids) else 0
+        parts = [_PRED_HEAD.pack(WIRE_VERSION, self.drone_id, self.step, horizon, n * horizon)]
+        for k, target_id in enumerate(self.target_ids):
+            for ahead in range(horizon):
+                x, y = self.positions[k, ahead]
+                parts.append(_PRED_ITEM.pack(target_id, ahead + 1, x, y))
+        return b"".join(parts)
+
+    @classmethod
+    def decode(cls, data: bytes) -> PredictionMessage:
+        """Unpack bytes made by :meth:`encode`."""
+        if len(data) < _PRED_HEAD.size:
+            raise WireError(f"prediction message of {len(data)} bytes is shorter than its header")
+        version, drone_id, step, horizon, count = _PRED_HEAD.unpack_from(data)
+        if version != WIRE_VERSION:
+            raise WireError(f"prediction message version {version}, expected {WIRE_VERSION}")
+        if len(data) != _PRED_HEAD.size + count * _PRED_ITEM.size or (horizon and count % horizon):
+            raise WireError(f"prediction message of {len(data)} bytes does not hold {count} items")
+        items = [
+            _PRED_ITEM.unpack_from(data, _PRED_HEAD.size + k * _PRED_ITEM.size)
+            for k in range(count)
+        ]
+        n = count // horizon if horizon else 0
+        positions = np.array([[x, y] for _, _, x, y in items], dtype=float).reshape(n, horizon, 2)
+        target_ids = tuple(items[k * horizon][0] for k in range(n))
+        return cls(drone_id, step, target_ids, positions)
+
+
+@dataclass(frozen=True)
+class ControlMessage:
+    """The cloud's acceleration command ``(ax, ay)`` m/s^2 for one drone at one step."""
+
+    drone_id: int
+    step: int
+    acceleration: tuple[float, float]
+
+    def encode(self) -> bytes:
+        """Pack to bytes (format in the module docstring)."""
+        return _CONTROL.pack(WIRE_VERSION, self.drone_id, self.step, *self.acceleration)
+
+    @classmethod
+    def decode(cls, data: bytes) -> ControlMessage:
+        """Unpack bytes made by :meth:`encode`."""
+        if len(data) != _CONTROL.size:
+            raise WireError(f"control message must be {_CONTROL.size} bytes, got {len(data)}")
+        version, drone_id, step, ax, ay = _CONTROL.unpack(data)
+        if version != WIRE_VERSION:
+            raise WireError(f"control message version {version}, expected {WIRE_VERSION}")
+        return cls(drone_id, step, (ax, ay))
+
+
+class ByteCounter:
+    """Bytes sent per (drone, direction, message kind), e.g. ``(2, "up", "predictions")``."""
+
+    def __init__(self) -> None:
+        self._bytes: dict[tuple[int, str, str], int] = defaultdict(int)
+
+    def add(self, drone_id: int, direction: str, kind: str, n_bytes: int) -> None:
+        """Count ``n_bytes`` sent ``direction`` (``up`` to the cloud or ``down``)."""
+        if direction not in ("up", "down"):
+            raise ValueError(f"direction must be 'up' or 'down', got {direction!r}")
+        self._bytes[(drone_id, direction, kind)] += n_bytes
+
+    def total(
+        self, drone_id: int | None = None, direction: str | None = None, kind: str | None = None
+    ) -> int:
+        """Bytes matching every given filter."""
+        return sum(
+            n
+            for (d, way, k), n in self._bytes.items()
+            if (drone_id is None or d == drone_id)
+            and (direction is None or way == direction)
+            and (kind is None or k == kind)
+        )
+
+    def kb_per_second(self, seconds: float) -> dict:
+        """Per-drone KB/s (1 KB = 1000 B) over ``seconds`` of simulated time, with a breakdown
+        by direction and message kind, and the mean over drones."""
+        drones = sorted({d for d, _, _ in self._bytes})
+        per_drone = {}
+        for d in drones:
+            breakdown = {
+                f"{way}:{k}": n / 1000 / seconds
+                for (dd, way, k), n in sorted(self._bytes.items())
+                if dd == d
+            }
+            per_drone[str(d)] = {"total": self.total(d) / 1000 / seconds, **breakdown}
+        mean = float(np.mean([v["total"] for v in per_drone.values()])) if drones else 0.0
+        return {"mean_per_drone": mean, "drones": per_drone}

@@ -1,0 +1,59 @@
+"""Per-step wire formats: sizes from the documented layout, exact round trips, bad bytes."""
+
+import numpy as np
+import pytest
+
+from dronefl.comm import ByteCounter, ControlMessage, PredictionMessage, WireError
+
+
+def test_prediction_message_size_and_round_trip():
+    positions = np.array([[[12.5, 40.25]], [[80.0, 3.5]], [[1.0, 2.0]]])  # (3 targets, L_f 1, 2)
+    message = PredictionMessage(drone_id=2, step=1234, target_ids=(1, 4, 6), positions=positions)
+    data = message.encode()
+    assert len(data) == 9 + 10 * 3
+    back = PredictionMessage.decode(data)
+    assert (back.drone_id, back.step, back.target_ids) == (2, 1234, (1, 4, 6))
+    assert np.array_equal(back.positions, positions.astype(np.float32))
+
+
+def test_prediction_message_with_a_longer_horizon_and_none():
+    positions = np.arange(2 * 5 * 2, dtype=float).reshape(2, 5, 2)
+    data = PredictionMessage(1, 7, (3, 5), positions).encode()
+    assert len(data) == 9 + 10 * 2 * 5
+    assert np.array_equal(PredictionMessage.decode(data).positions, positions)
+    empty = PredictionMessage(1, 8, (), np.zeros((0, 1, 2))).encode()
+    assert len(empty) == 9 and PredictionMessage.decode(empty).target_ids == ()
+
+
+def test_control_message_round_trip():
+    data = ControlMessage(3, 99, (0.5, -1.25)).encode()
+    assert len(data) == 14
+    assert ControlMessage.decode(data) == ControlMessage(3, 99, (0.5, -1.25))
+
+
+@pytest.mark.parametrize(
+    "data, match",
+    [
+        (b"\x01\x02", "shorter than its header"),
+        (b"\x09" + bytes(8), "version 9"),
+        (PredictionMessage(1, 1, (1,), np.zeros((1, 1, 2))).encode()[:-3], "does not hold"),
+    ],
+)
+def test_damaged_prediction_messages_are_rejected(data, match):
+    with pytest.raises(WireError, match=match):
+        PredictionMessage.decode(data)
+
+
+def test_byte_counter_rates_and_breakdown():
+    counter = ByteCounter()
+    for _ in range(50):  # 10 s at 5 Hz
+        counter.add(1, "up", "predictions", 19)
+        counter.add(1, "down", "control", 14)
+    counter.add(2, "up", "weights", 5000)
+    rates = counter.kb_per_second(10.0)
+    assert rates["drones"]["1"]["total"] == pytest.approx((19 + 14) * 5 / 1000)
+    assert rates["drones"]["1"]["up:predictions"] == pytest.approx(0.095)
+    assert rates["drones"]["2"]["total"] == pytest.approx(0.5)
+    assert rates["mean_per_drone"] == pytest.approx((0.165 + 0.5) / 2)
+    with pytest.raises(ValueError, match="direction"):
+        counter.add(1, "sideways", "x", 1)
