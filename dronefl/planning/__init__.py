@@ -1,0 +1,14 @@
+"""Cloud-side planning: the planner interface and the DroneFL cost-function planner (SPEC §7)."""
+
+from dronefl.planning.base import Plan, PlanCost, Planner, double_integrator_step
+from dronefl.planning.dronefl_planner import DroneFLPlanner, PlannedDrone, PlannerConfig
+
+__all__ = [
+    "DroneFLPlanner",
+    "Plan",
+    "PlanCost",
+    "PlannedDrone",
+    "Planner",
+    "PlannerConfig",
+    "double_integrator_step",
+]
