@@ -20,7 +20,7 @@ from dronefl.sim.world import World
 def realtime_factor(case: str, environment: str, duration: float) -> float:
     """Simulated seconds per wall-clock second for ``duration`` s of ``case``."""
     world = World(load_scenario(case), environment, seed=0)
-    detector, pilot = make_detector("projection", world), PilotController()
+    detector, pilot = make_detector("projection", world), PilotController(world.rng("pilot"))
     steps = int(duration * world.scenario.rate_hz)
     started = time.perf_counter()
     for _ in range(steps):

@@ -260,3 +260,47 @@ def load_run(folder: str | Path) -> tuple[dict[int, OnboardLog], GroundTruth]:
         raise LogError(f"{folder}: no drone_<id>.npz logs in this folder")
     logs = {log.drone_id: log for log in map(OnboardLog.load, paths)}
     return logs, GroundTruth.load(folder / "ground_truth.npz")
+
+
+PSEUDO_LABEL_FORMAT = "dronefl.pseudo_labels"
+
+
+@dataclass(frozen=True)
+class PseudoLabels:
+    """Target positions that stand in for ground truth when training in the field: the cloud's
+    fused EKF tracks (``position`` ``(T, N, 2)`` m on the drones' time grid ``t`` ``(T,)``, NaN
+    where no track existed), saved as ``tracks.npz`` beside the onboard logs of an FL round."""
+
+    t: np.ndarray
+    target_ids: np.ndarray
+    position: np.ndarray
+
+    def save(self, path: str | Path) -> Path:
+        """Write the labels atomically to ``path``."""
+        return atomic_savez(
+            path,
+            format=np.array(PSEUDO_LABEL_FORMAT),
+            version=np.array(FORMAT_VERSION),
+            t=self.t.astype(np.float64),
+            target_ids=self.target_ids.astype(np.int32),
+            position=self.position.astype(np.float64),
+            meta=np.array("{}"),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> PseudoLabels:
+        """Read and validate a file written by :meth:`save`."""
+        data = _read_npz(Path(path), PSEUDO_LABEL_FORMAT, ("t", "target_ids", "position", "meta"))
+        _expect_shape(path, data, "position", (data["t"].shape[0], data["target_ids"].shape[0], 2))
+        return cls(data["t"], data["target_ids"], data["position"])
+
+    def for_log(self, log: OnboardLog) -> np.ndarray:
+        """Labels ``(T, N, 2)`` in ``log``'s column order (NaN for targets without labels)."""
+        if self.t.shape != log.t.shape or not np.allclose(self.t, log.t, atol=1e-6):
+            raise LogError(f"drone {log.drone_id}: pseudo-labels are on another time grid")
+        out = np.full((len(log.t), len(log.target_ids), 2), np.nan)
+        for j, target_id in enumerate(log.target_ids):
+            hits = np.flatnonzero(self.target_ids == target_id)
+            if hits.size:
+                out[:, j] = self.position[:, hits[0]]
+        return out

@@ -50,7 +50,7 @@ def simulate(
         raise ValueError(f"--duration: must be positive, got {duration}")
     world = World(scenario, environment, seed)
     det = make_detector(detector, world)
-    pilot = PilotController()
+    pilot = PilotController(world.rng("pilot"))
     n_steps = int(round(duration * scenario.rate_hz))
     target_ids = world.targets.ids
     column = {int(i): j for j, i in enumerate(target_ids)}

@@ -85,7 +85,7 @@ def test_odometry_is_noisy_truth_in_the_documented_layout():
 def test_same_seed_same_run_and_different_seed_different_run():
     def trace(seed):
         world = World(load_scenario("case2"), seed=seed)
-        pilot = PilotController()
+        pilot = PilotController(world.rng("pilot"))
         for _ in range(100):
             world.step(pilot.control(world))
         return world.targets.position.copy(), np.array([o.vector for o in world.odometry()])
