@@ -99,17 +99,348 @@ def scenarios(
 
 
 @app.command()
-def demo(out: OutOption = Path("runs/demo")) -> None:
-    """The default experiment: record Case 3 in the crop field for 120 s and plot it.
+def demo(
+    out: OutOption = Path("runs/demo"),
+    duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 300.0,
+) -> None:
+    """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
+    round every 100 s) beside fixed distributed models, both pretrained in the crop field.
 
     Example: dronefl demo --out runs/demo
     """
-    from dronefl.experiments.simulate import format_summary
-    from dronefl.experiments.simulate import simulate as run
+    from dronefl.experiments.track import TrackConfig, run_episode
+    from dronefl.report.tables import comparison
 
-    summary = run(load_scenario("case3"), duration=120.0, seed=0, out=out / "simulate")
-    typer.echo(format_summary(summary))
-    typer.echo(f"wrote {out}/simulate/topdown.png")
+    results = []
+    for method in ("fixed", "dronefl"):
+        config = TrackConfig(
+            case=2,
+            method=method,
+            seed=0,
+            duration=duration,
+            out=out / method,
+            pretrained=out / "pretrained",
+        )
+        results.append(run_episode(config))
+    typer.echo(comparison(results))
+    typer.echo(
+        f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"
+    )
+
+
+RoundsOption = Annotated[int, typer.Option("--rounds", help="Global FL rounds.")]
+StrideOption = Annotated[int, typer.Option("--stride", help="Samples between training windows.")]
+ResumeOption = Annotated[
+    bool, typer.Option("--resume", help="Continue finished work and checkpoints in --out.")
+]
+
+
+def _fl_errors() -> tuple[type[Exception], ...]:
+    from dronefl.fl.checkpoint import CheckpointError
+    from dronefl.fl.records import SettingsError
+
+    return (SettingsError, CheckpointError, ValueError)
+
+
+@app.command("fl-offline")
+def fl_offline(
+    case: Annotated[int, typer.Option("--case", help="Paper case 1, 2 or 3.")] = 1,
+    rounds: RoundsOption = 50,
+    seed: SeedOption = 0,
+    out: OutOption = Path("runs/fl_offline"),
+    methods: Annotated[
+        str, typer.Option(help="Comma-separated methods (see dronefl.fl.methods).")
+    ] = "fedavg,fedprox,fedper,dronefl,centralized",
+    duration: Annotated[float, typer.Option(help="Simulated seconds recorded.")] = 600.0,
+    stride: StrideOption = 10,
+    mu: Annotated[float, typer.Option("--mu", help="FedProx proximal weight mu.")] = 0.01,
+    resume: ResumeOption = False,
+) -> None:
+    """Offline FL (paper Fig. 5): record the case, train every method, plot and tabulate.
+
+    Example: dronefl fl-offline --case 2 --rounds 50 --seed 0 --out runs/fl/case2
+    """
+    from dronefl.experiments.fl_offline import OfflineConfig, run_fl_offline
+    from dronefl.models.model import parameter_summary
+
+    try:
+        config = OfflineConfig(
+            case, out, rounds, seed, duration, stride, mu, tuple(methods.split(",")), resume
+        )
+        typer.echo(parameter_summary())
+        results = run_fl_offline(config)
+    except _fl_errors() as exc:
+        raise fail(str(exc)) from None
+    for method, block in results["methods"].items():
+        typer.echo(f"{method:18s} final test MSE {block['final_test_mse']:.4g} m^2")
+    typer.echo(f"wrote {out}/ (results.json, fig5_case{case}.png, table.md)")
+
+
+@app.command("fl-ablation")
+def fl_ablation(
+    rounds: RoundsOption = 50,
+    seed: SeedOption = 0,
+    out: OutOption = Path("runs/fl_ablation"),
+    stride: StrideOption = 10,
+    resume: ResumeOption = False,
+) -> None:
+    """DroneFL without AdaIN and without relative positions, Cases 1-3.
+
+    Example: dronefl fl-ablation --rounds 50 --out runs/fl   (reuses runs/fl/case<N> with --resume)
+    """
+    from dronefl.experiments.fl_offline import run_ablation
+
+    try:
+        run_ablation(out, rounds, seed, stride, resume)
+    except _fl_errors() as exc:
+        raise fail(str(exc)) from None
+    typer.echo((out / "ablation.md").read_text())
+
+
+@app.command("fl-altitude")
+def fl_altitude(
+    rounds: RoundsOption = 50,
+    seed: SeedOption = 0,
+    out: OutOption = Path("runs/fl_altitude"),
+    methods: Annotated[str, typer.Option(help="Comma-separated methods.")] = "fedavg",
+    stride: StrideOption = 10,
+    resume: ResumeOption = False,
+) -> None:
+    """Altitude motivation study (paper Fig. 4): drone 1's test MSE per round with drone 2 at
+    the same or a different altitude.
+
+    Example: dronefl fl-altitude --rounds 50 --out runs/fl_altitude
+    """
+    from dronefl.experiments.fl_offline import run_altitude_study
+
+    try:
+        study = run_altitude_study(out, rounds, seed, stride, tuple(methods.split(",")), resume)
+    except _fl_errors() as exc:
+        raise fail(str(exc)) from None
+    for label, curve in study["curves"].items():
+        typer.echo(f"{label:32s} drone 1 final test MSE {curve['final']:.4g} m^2")
+    typer.echo(f"wrote {out}/ (altitude.json, fig4_altitude.png)")
+
+
+detector_app = typer.Typer(
+    no_args_is_help=True, help="The vision path: render a dataset, train, evaluate, draw figures."
+)
+app.add_typer(detector_app, name="detector")
+DatasetDirOption = Annotated[
+    Path, typer.Option("--data", help="Dataset folder (from `dronefl detector dataset`).")
+]
+WeightsOption = Annotated[
+    Path | None, typer.Option("--weights", help="ONNX detector (default: the shipped one).")
+]
+
+
+@detector_app.command("dataset")
+def detector_dataset(
+    out: OutOption = Path("runs/detector/dataset"),
+    train_per_env: Annotated[int, typer.Option(help="Training frames per environment.")] = 800,
+    val_per_env: Annotated[int, typer.Option(help="Validation frames per environment.")] = 80,
+    test_per_env: Annotated[int, typer.Option(help="Held-out frames per environment.")] = 150,
+    seed: SeedOption = 0,
+) -> None:
+    """Render frames of crop_field and orchard with exact YOLO labels, split train/val/test.
+
+    Example: dronefl detector dataset --out runs/detector/dataset
+    """
+    from rich.progress import track
+
+    from dronefl.perception.dataset import DatasetConfig, write_dataset
+
+    try:
+        config = DatasetConfig(train_per_env, val_per_env, test_per_env, seed=seed)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    counts = write_dataset(out, config, progress=lambda jobs: track(jobs, "rendering"))
+    typer.echo(f"wrote {out}/ {counts} (data.yaml, data_<environment>.yaml)")
+
+
+@detector_app.command("train")
+def detector_train(
+    data: DatasetDirOption = Path("runs/detector/dataset"),
+    out: OutOption = Path("runs/detector/run"),
+    imgsz: Annotated[int, typer.Option(help="Network input size, px.")] = 320,
+    epochs: Annotated[int, typer.Option(help="Training epochs.")] = 22,
+    threads: Annotated[int, typer.Option(help="torch CPU threads.")] = 2,
+    ship: Annotated[bool, typer.Option(help="Copy the ONNX into dronefl/assets/.")] = True,
+) -> None:
+    """Train YOLO11n from yolo11n.yaml (no pretrained weights) and export ONNX.
+
+    Example: nice -n 10 dronefl detector train --data runs/detector/dataset --epochs 22
+    """
+    from dronefl.perception.training import (
+        TrainConfig,
+        detector_sidecar,
+        ship_detector,
+        train_detector,
+    )
+
+    try:
+        config = TrainConfig(imgsz=imgsz, epochs=epochs, threads=threads)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    record = train_detector(data / "data.yaml", out, config)
+    typer.echo(f"trained in {record['train_seconds'] / 60:.1f} min; ONNX at {record['onnx']}")
+    if ship:
+        command = f"dronefl detector train --data {data} --imgsz {imgsz} --epochs {epochs}"
+        shipped = ship_detector(Path(record["onnx"]), detector_sidecar(data, record, command))
+        typer.echo(f"shipped {shipped}")
+
+
+@detector_app.command("evaluate")
+def detector_evaluate(
+    data: DatasetDirOption = Path("runs/detector/dataset"),
+    weights: WeightsOption = None,
+    out: OutOption = Path("runs/detector/eval"),
+    ship_noise: Annotated[
+        bool, typer.Option(help="Write the fitted projection noise into dronefl/assets/.")
+    ] = True,
+) -> None:
+    """mAP per environment, box error and miss rate vs altitude; fit the projection noise.
+
+    Example: dronefl detector evaluate --data runs/detector/dataset --out runs/detector/eval
+    """
+    from dronefl.perception.evaluation import evaluate_detector, format_report, ship_evaluation
+    from dronefl.perception.yolo import shipped_detector_path
+
+    try:
+        report = evaluate_detector(weights or shipped_detector_path(), data, out)
+    except ValueError as exc:  # corrupt weights or scene records
+        raise fail(str(exc)) from None
+    typer.echo(format_report(report))
+    if ship_noise:
+        for path in ship_evaluation(report, update_sidecar=weights is None):
+            typer.echo(f"wrote {path}")
+
+
+@detector_app.command("figures")
+def detector_figures(
+    out: OutOption = Path("docs/img"),
+    weights: WeightsOption = None,
+    eval_json: Annotated[
+        Path, typer.Option("--eval", help="eval.json of `dronefl detector evaluate`.")
+    ] = Path("runs/detector/eval/eval.json"),
+) -> None:
+    """README figures: Case 3 frames of both environments with detections, quality vs altitude.
+
+    Example: dronefl detector figures --out docs/img
+    """
+    from dronefl.report.frames import write_detector_figures
+
+    try:
+        written = write_detector_figures(out, weights, eval_json)
+    except ValueError as exc:  # corrupt weights
+        raise fail(str(exc)) from None
+    for path in written:
+        typer.echo(f"wrote {path}")
+
+
+CaseOption = Annotated[int, typer.Option("--case", help="Paper case: 1, 2 or 3.")]
+TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dronefl")]
+
+
+def _track_config(**kwargs) -> object:
+    from dronefl.experiments.track import TrackConfig
+
+    try:
+        return TrackConfig(**kwargs)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+
+
+@app.command()
+def track(
+    case: CaseOption = 2,
+    method: TrackMethod = "dronefl",
+    seed: SeedOption = 0,
+    duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 600.0,
+    env: Annotated[str, typer.Option("--env", help="Deployment environment.")] = "orchard",
+    detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
+    fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
+    labels: Annotated[str, typer.Option(help="tracks (pseudo-labels) | ground_truth")] = "tracks",
+    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
+        "runs/pretrained"
+    ),
+    out: OutOption = Path("runs/track"),
+) -> None:
+    """Closed-loop tracking: detect, predict, fuse, plan every 0.2 s; an FL round every 100 s.
+
+    Writes metrics.json, episode.npz, trajectories.png, timeseries.png and episode.gif.
+    Example: dronefl track --case 2 --method dronefl --seed 0 --duration 600 --out runs/c2
+    """
+    from dronefl.experiments.track import run_episode
+    from dronefl.report.tables import format_metrics
+
+    check_choice(env, ENVIRONMENTS, "--env")
+    check_choice(detector, DETECTORS, "--detector")
+    config = _track_config(
+        case=case,
+        method=method,
+        seed=seed,
+        duration=duration,
+        environment=env,
+        detector=detector,
+        fl_period=fl_period,
+        labels=labels,
+        pretrained=pretrained,
+        out=out,
+    )
+    metrics = run_episode(config)
+    typer.echo(format_metrics(metrics))
+    typer.echo(f"wrote {out}/ (metrics.json, trajectories.png, timeseries.png, episode.gif)")
+
+
+def _int_list(text: str, option: str) -> tuple[int, ...]:
+    """``"0 1 2"`` or ``"0,1,2"`` -> ``(0, 1, 2)``."""
+    try:
+        return tuple(int(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        raise fail(f"{option}: expected integers, got {text!r}") from None
+
+
+@app.command()
+def table1(
+    seeds: Annotated[str, typer.Option("--seeds", help="Seeds, e.g. '0 1 2' or 0,1,2.")] = "0 1 2",
+    cases: Annotated[str, typer.Option("--cases", help="Cases, e.g. '1 2 3'.")] = "1 2 3",
+    duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
+    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
+        "runs/pretrained"
+    ),
+    out: OutOption = Path("runs/table1"),
+) -> None:
+    """Table I: every case x {centralized, fixed, dronefl} x seed; markdown, CSV and a plot.
+
+    Finished episodes are reused, so an interrupted run resumes.
+    Example: dronefl table1 --seeds "0 1 2" --out runs/table1
+    """
+    from dronefl.experiments.table1 import run_table1
+
+    base = _track_config(case=1, duration=duration, pretrained=pretrained, out=out)
+    rows = run_table1(base, cases=_int_list(cases, "--cases"), seeds=_int_list(seeds, "--seeds"))
+    typer.echo((out / "table1.md").read_text())
+    typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(rows)} episodes)")
+
+
+@app.command()
+def pretrain(
+    case: CaseOption = 2,
+    rounds: Annotated[int, typer.Option(help="FL rounds / centralized epochs x10.")] = 20,
+    out: OutOption = Path("runs/pretrained"),
+) -> None:
+    """Pretrain the closed loop's models in the crop field (DroneFL by FL, the large
+    centralized model on pooled data), L_p = 10 -> L_f = 1. `track` does this on demand.
+
+    Example: dronefl pretrain --case 2 --out runs/pretrained
+    """
+    from dronefl.experiments.pretrain import KINDS
+    from dronefl.experiments.pretrain import pretrain as run
+
+    for kind in KINDS:
+        run(case, kind, out, rounds=rounds)
+    typer.echo(f"wrote {out}/case{case}/(dronefl|centralized)/checkpoint.npz")
 
 
 def main() -> None:

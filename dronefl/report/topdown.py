@@ -7,6 +7,7 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.collections import PatchCollection
 from matplotlib.patches import Circle, Rectangle
 
 from dronefl.config import Scenario
@@ -38,8 +39,8 @@ def draw_field(ax: plt.Axes, env: FarmEnvironment) -> None:
         for y in env.tree_row_y:
             ax.plot([f.headland, f.width - f.headland], [y, y], color="#9bbf6a", lw=0.6)
     elif env.kind == "orchard":
-        for x, y in env.trees:
-            ax.add_patch(Circle((x, y), env.canopy_radius, facecolor="#5f8f3a", alpha=0.45, lw=0))
+        canopies = [Circle((x, y), env.canopy_radius) for x, y in env.trees]
+        ax.add_collection(PatchCollection(canopies, facecolor="#5f8f3a", alpha=0.45, lw=0))
     ax.set_xlim(-2, f.width + 2)
     ax.set_ylim(-2, f.height + 2)
     ax.set_aspect("equal")

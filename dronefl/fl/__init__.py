@@ -1,0 +1,1 @@
+"""Federated learning on Flower: client and server apps, strategies, records adapter, comm."""

@@ -1,0 +1,172 @@
+"""The drone side of federated learning: a Flower ``ClientApp`` (Message API).
+
+On ``train`` a drone loads the global weights, trains E epochs on its own windows
+(:func:`dronefl.models.train.train_local`, with FedProx's proximal term when the strategy sent
+``proximal-mu``) and replies with its weights and sample count. On ``evaluate`` it reports the
+test MSE of the global model on its held-out (later) windows. FedPer drones keep the output
+head in ``context.state`` and never send it.
+
+Which drone a node is: ``node_config["drone-id"]`` in a deployment, else the
+``partition-id``-th drone of the recorded run (simulation). Settings come from the run config
+(:class:`dronefl.fl.records.FlSettings`); ``app`` is the deployable object
+(``dronefl.fl.client_app:app``).
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+from flwr.app import Context, Message, RecordDict
+from flwr.clientapp import ClientApp
+
+from dronefl.fl.records import (
+    ARRAYS_KEY,
+    DRONE_KEY,
+    METRICS_KEY,
+    PARTITION_KEY,
+    ClientReport,
+    FlSettings,
+    SettingsError,
+    TrainInstructions,
+    to_arrays,
+    to_state,
+)
+from dronefl.io import atomic_savez
+from dronefl.models.model import TrajectoryTransformer, build_model
+from dronefl.models.train import evaluate, proximal_term, train_local
+from dronefl.models.windows import WindowSet, WindowSpec, load_drone_split
+
+PERSONAL_KEY = "personal-head"
+
+
+def build_client_app(defaults: dict | None = None) -> ClientApp:
+    """A ClientApp whose settings are ``defaults`` overridden by the run config.
+
+    The simulation passes the experiment's settings as ``defaults`` (Flower's
+    ``run_simulation`` takes no run config); a deployment passes them as the run config.
+    """
+    app = ClientApp()
+
+    @app.train()
+    def train(msg: Message, context: Context) -> Message:
+        return handle_train(msg, context, _settings(context, defaults))
+
+    @app.evaluate()
+    def evaluate_(msg: Message, context: Context) -> Message:
+        return handle_evaluate(msg, context, _settings(context, defaults))
+
+    return app
+
+
+def handle_train(msg: Message, context: Context, settings: FlSettings) -> Message:
+    """One round of local training on this drone."""
+    torch.set_num_threads(1)
+    drone_id = _drone_id(context, settings)
+    train_set, _ = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
+    instructions = TrainInstructions.from_config(msg.content["config"])
+    global_state = to_state(msg.content[ARRAYS_KEY])
+    model = _local_model(settings, global_state, context, drone_id, instructions.server_round)
+    regularizer = None
+    if instructions.proximal_mu > 0:
+        regularizer = proximal_term(global_state, instructions.proximal_mu)
+    config = settings.train_config(instructions.server_round, drone_id)
+    stats = train_local(model, train_set, config, regularizer)
+    state = model.state_dict()
+    if settings.method_spec.personal:
+        head = {k: v for k, v in state.items() if k.startswith(TrajectoryTransformer.HEAD)}
+        _keep_personal(context, settings, drone_id, head)
+        state = {k: v for k, v in state.items() if k in global_state}
+    report = ClientReport(drone_id, stats.num_examples, stats.loss)
+    content = RecordDict({ARRAYS_KEY: to_arrays(state), METRICS_KEY: report.to_metrics()})
+    return Message(content=content, reply_to=msg)
+
+
+def handle_evaluate(msg: Message, context: Context, settings: FlSettings) -> Message:
+    """Test MSE (m^2) of the global model (with this drone's personal head, for FedPer)."""
+    torch.set_num_threads(1)
+    drone_id = _drone_id(context, settings)
+    _, test_set = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
+    server_round = TrainInstructions.from_config(msg.content["config"]).server_round
+    global_state = to_state(msg.content[ARRAYS_KEY])
+    model = _local_model(settings, global_state, context, drone_id, server_round)
+    report = ClientReport(drone_id, len(test_set), evaluate(model, test_set))
+    return Message(content=RecordDict({METRICS_KEY: report.to_metrics()}), reply_to=msg)
+
+
+def _local_model(
+    settings: FlSettings,
+    global_state: dict[str, torch.Tensor],
+    context: Context,
+    drone_id: int,
+    server_round: int,
+) -> TrajectoryTransformer:
+    """The model with the global weights, plus the personal head for FedPer (the seeded
+    initial head in the first round)."""
+    model = build_model(settings.model, seed=settings.seed)
+    if not settings.method_spec.personal:
+        model.load_state_dict(global_state)
+        return model
+    state = model.state_dict()
+    state.update(global_state)
+    head = _personal(context, settings, drone_id, server_round)
+    if head is not None:
+        state.update(head)
+    model.load_state_dict(state)
+    return model
+
+
+def _personal(
+    context: Context, settings: FlSettings, drone_id: int, server_round: int
+) -> dict[str, torch.Tensor] | None:
+    if PERSONAL_KEY in context.state:
+        return to_state(context.state[PERSONAL_KEY])
+    # A resumed run starts with an empty context: the drone's own copy on its disk.
+    path = _personal_path(settings, drone_id)
+    if server_round > 1 and path.is_file():
+        with np.load(path, allow_pickle=False) as npz:
+            return {k: torch.from_numpy(npz[k].copy()) for k in npz.files}
+    return None
+
+
+def _keep_personal(
+    context: Context, settings: FlSettings, drone_id: int, head: dict[str, torch.Tensor]
+) -> None:
+    context.state[PERSONAL_KEY] = to_arrays(head)
+    atomic_savez(_personal_path(settings, drone_id), **{k: v.numpy() for k, v in head.items()})
+
+
+def _personal_path(settings: FlSettings, drone_id: int) -> Path:
+    return Path(settings.out_dir) / "personal" / f"drone_{drone_id}.npz"
+
+
+def _settings(context: Context, defaults: dict | None) -> FlSettings:
+    return FlSettings.from_run_config({**(defaults or {}), **dict(context.run_config)})
+
+
+def _drone_id(context: Context, settings: FlSettings) -> int:
+    config = dict(context.node_config)
+    if DRONE_KEY in config:
+        return int(config[DRONE_KEY])
+    if PARTITION_KEY not in config:
+        raise SettingsError(f"node config: needs {DRONE_KEY!r} or {PARTITION_KEY!r}")
+    drones = sorted(int(p.stem.split("_")[1]) for p in Path(settings.run_dir).glob("drone_*.npz"))
+    partition = int(config[PARTITION_KEY])
+    if not 0 <= partition < len(drones):
+        raise SettingsError(
+            f"node config: partition {partition} but the run has {len(drones)} drones"
+        )
+    return drones[partition]
+
+
+@lru_cache(maxsize=8)
+def _windows(
+    run_dir: str, drone_id: int, spec: WindowSpec, labels: str
+) -> tuple[WindowSet, WindowSet]:
+    """This drone's train/test windows, loaded once per process."""
+    return load_drone_split(run_dir, drone_id, spec, labels)
+
+
+app = build_client_app()

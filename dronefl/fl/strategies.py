@@ -1,0 +1,193 @@
+"""Server-side strategies: Flower's FedAvg / FedProx with robust, logged aggregation.
+
+Flower's strategy owns the round loop (``Strategy.start``); DroneFL only overrides hooks:
+
+* ``configure_train`` / ``configure_evaluate`` number rounds globally, so that a resumed run
+  continues at round ``k + 1`` (``round_offset``), and remember which weights were sent;
+* ``aggregate_train`` first screens every reply (:func:`screen_reply`): a drone that failed,
+  sent no weights, other keys, non-finite or absurd weights is left out of that round and
+  logged, and the rest are averaged as usual, weighted by sample count:
+  ``w_g = sum_i n_i w_i / sum_i n_i``;
+* ``aggregate_evaluate`` keeps every drone's test MSE and their plain mean (the paper's
+  "average test MSE across drones").
+
+FedPer and DroneFL need nothing else on the server: FedPer's drones simply never send their
+personal head, DroneFL is FedAvg of a different model.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from logging import WARNING
+
+import numpy as np
+from flwr.app import ArrayRecord, ConfigRecord, Message, MetricRecord
+from flwr.common.logger import log
+from flwr.serverapp import Grid
+from flwr.serverapp.strategy import FedAvg, FedProx
+
+from dronefl.fl.methods import Method
+from dronefl.fl.records import ARRAYS_KEY, ClientReport, SettingsError
+
+#: Weights larger than this (in absolute value) are "absurd" for this model (its trained
+#: weights are O(1)); such an update is rejected like a non-finite one.
+MAX_ABS_WEIGHT = 1e4
+
+
+@dataclass
+class RoundLog:
+    """What happened in one global round, as the server saw it."""
+
+    server_round: int
+    train_loss: dict[int, float] = field(default_factory=dict)  # drone -> m^2
+    test_mse: dict[int, float] = field(default_factory=dict)  # drone -> m^2
+    rejected: list[str] = field(default_factory=list)  # "drone 2: non-finite weights"
+
+    @property
+    def mean_test_mse(self) -> float:
+        """Unweighted mean over drones of the test MSE, m^2 (NaN if no drone reported)."""
+        return float(np.mean(list(self.test_mse.values()))) if self.test_mse else math.nan
+
+
+def screen_reply(reply: Message, expected_keys: set[str]) -> str | None:
+    """Why a training reply must be left out of aggregation, or None if it is usable."""
+    if reply.has_error():
+        return f"error ({reply.error.reason})"
+    content = reply.content
+    if len(content.array_records) != 1 or len(content.metric_records) != 1:
+        return "reply must hold one ArrayRecord and one MetricRecord"
+    arrays = next(iter(content.array_records.values()))
+    if set(arrays.keys()) != expected_keys:
+        return "weights with unexpected keys"
+    try:
+        report = ClientReport.from_metrics(next(iter(content.metric_records.values())))
+    except (SettingsError, TypeError, ValueError) as exc:
+        return f"bad metrics ({exc})"
+    if report.num_examples < 1:
+        return "no training examples"
+    for value in arrays.values():
+        w = value.numpy()
+        if not np.isfinite(w).all():
+            return "non-finite weights"
+        if np.abs(w).max(initial=0.0) > MAX_ABS_WEIGHT:
+            return f"absurd weights (|w| > {MAX_ABS_WEIGHT:g})"
+    return None
+
+
+def _drone_of(reply: Message) -> str:
+    if reply.has_content():
+        for metrics in reply.content.metric_records.values():
+            if "drone-id" in metrics:
+                return f"drone {int(metrics['drone-id'])}"
+    return f"node {reply.metadata.src_node_id}"
+
+
+class RobustRounds:
+    """Mixin for Flower strategies: global round numbers, screened aggregation, round logs."""
+
+    round_offset: int
+    logs: dict[int, RoundLog]
+    _sent_keys: set[str]
+
+    def _init_robust(self, round_offset: int) -> None:
+        self.round_offset = round_offset
+        self.logs = {}
+        self._sent_keys = set()
+
+    def _log(self, server_round: int) -> RoundLog:
+        r = server_round + self.round_offset
+        return self.logs.setdefault(r, RoundLog(r))
+
+    def configure_train(
+        self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
+    ) -> Iterable[Message]:
+        self._sent_keys = set(arrays.keys())
+        return super().configure_train(server_round + self.round_offset, arrays, config, grid)  # type: ignore[misc]
+
+    def configure_evaluate(
+        self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
+    ) -> Iterable[Message]:
+        return super().configure_evaluate(server_round + self.round_offset, arrays, config, grid)  # type: ignore[misc]
+
+    def aggregate_train(
+        self, server_round: int, replies: Iterable[Message]
+    ) -> tuple[ArrayRecord | None, MetricRecord | None]:
+        record = self._log(server_round)
+        valid = []
+        for reply in replies:
+            reason = screen_reply(reply, self._sent_keys)
+            if reason is None:
+                valid.append(reply)
+                report = ClientReport.from_metrics(
+                    next(iter(reply.content.metric_records.values()))
+                )
+                record.train_loss[report.drone_id] = report.value
+            else:
+                record.rejected.append(f"{_drone_of(reply)}: {reason}")
+                log(
+                    WARNING,
+                    "round %d: left out %s: %s",
+                    record.server_round,
+                    _drone_of(reply),
+                    reason,
+                )
+        if not valid:
+            log(WARNING, "round %d: no valid update; the global model is kept", record.server_round)
+            return None, None
+        return super().aggregate_train(server_round, valid)  # type: ignore[misc]
+
+    def aggregate_evaluate(
+        self, server_round: int, replies: Iterable[Message]
+    ) -> MetricRecord | None:
+        record = self._log(server_round)
+        for reply in replies:
+            if reply.has_error() or len(reply.content.metric_records) != 1:
+                record.rejected.append(f"{_drone_of(reply)}: evaluation failed")
+                continue
+            report = ClientReport.from_metrics(next(iter(reply.content.metric_records.values())))
+            if report.finite:
+                record.test_mse[report.drone_id] = report.value
+            else:
+                record.rejected.append(f"drone {report.drone_id}: non-finite test MSE")
+        return MetricRecord({"mean-test-mse": record.mean_test_mse}) if record.test_mse else None
+
+
+class RobustFedAvg(RobustRounds, FedAvg):
+    """FedAvg (McMahan et al., 2017) with screened aggregation; used by fedavg, fedper, dronefl."""
+
+    def __init__(self, num_drones: int, round_offset: int = 0) -> None:
+        FedAvg.__init__(self, **_all_nodes(num_drones), arrayrecord_key=ARRAYS_KEY)
+        self._init_robust(round_offset)
+
+
+class RobustFedProx(RobustRounds, FedProx):
+    """FedProx (Li et al., 2020): FedAvg that also sends ``proximal-mu`` to the drones, whose
+    local loss adds ``(mu / 2) ||w - w_g||^2``."""
+
+    def __init__(self, num_drones: int, proximal_mu: float, round_offset: int = 0) -> None:
+        FedProx.__init__(
+            self, **_all_nodes(num_drones), arrayrecord_key=ARRAYS_KEY, proximal_mu=proximal_mu
+        )
+        self._init_robust(round_offset)
+
+
+def _all_nodes(num_drones: int) -> dict[str, int]:
+    """Every connected drone trains and evaluates in every round (paper Sec. IV-A)."""
+    return {
+        "min_train_nodes": num_drones,
+        "min_evaluate_nodes": num_drones,
+        "min_available_nodes": num_drones,
+    }
+
+
+def make_strategy(
+    method: Method, num_drones: int, proximal_mu: float, round_offset: int = 0
+) -> RobustFedAvg | RobustFedProx:
+    """The server strategy of a federated ``method``."""
+    if not method.federated:
+        raise ValueError(f"method {method.name!r} is not federated")
+    if method.proximal:
+        return RobustFedProx(num_drones, proximal_mu, round_offset)
+    return RobustFedAvg(num_drones, round_offset)

@@ -1,0 +1,1 @@
+"""The on-drone trajectory predictor: model, training windows, local training."""

@@ -1,0 +1,125 @@
+"""Local training and evaluation of the trajectory predictor: plain PyTorch, no FL imports.
+
+Loss and metric are the mean squared error in m^2, averaged over windows, future steps and the
+two horizontal axes (``torch.nn.functional.mse_loss``). Optimiser: Adam, lr 1e-3, E = 10 epochs
+(paper Sec. V-A). Batch size 128 windows: small enough for many updates per epoch on a drone's
+few thousand windows, large enough that one epoch of 3,000 windows stays near 0.3 s on one CPU
+thread.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from dronefl.models.windows import WindowSet
+
+#: Extra loss term computed from the model being trained (e.g. FedProx's proximal term).
+Regularizer = Callable[[nn.Module], torch.Tensor]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Local training: ``epochs`` E, Adam learning rate ``lr``, ``batch_size`` windows, and
+    the ``seed`` of the shuffling and dropout."""
+
+    epochs: int = 10
+    lr: float = 1e-3
+    batch_size: int = 128
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.epochs < 1 or self.batch_size < 1:
+            raise ValueError("TrainConfig.epochs and batch_size must be >= 1")
+        if not self.lr > 0:
+            raise ValueError(f"TrainConfig.lr must be positive, got {self.lr}")
+
+
+@dataclass(frozen=True)
+class TrainStats:
+    """What one local training run reports: ``num_examples`` windows, the mean loss of the
+    last epoch in m^2 (without the regulariser) and the seconds per epoch."""
+
+    num_examples: int
+    loss: float
+    seconds_per_epoch: float
+
+
+def proximal_term(reference: dict[str, torch.Tensor], mu: float) -> Regularizer:
+    """FedProx's proximal term (Li et al., 2020): ``(mu / 2) * sum_k ||w_k - w_k^g||^2``
+    over the model's trainable parameters ``w``, against the round's global weights
+    ``reference`` (a state dict; held fixed). Its gradient is ``mu (w - w^g)``."""
+    frozen = {k: v.detach().clone() for k, v in reference.items()}
+
+    def term(model: nn.Module) -> torch.Tensor:
+        total = torch.zeros(())
+        for name, w in model.named_parameters():
+            if name in frozen:
+                total = total + (w - frozen[name]).pow(2).sum()
+        return 0.5 * mu * total
+
+    return term
+
+
+def _tensors(data: WindowSet) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return (
+        torch.from_numpy(data.features),
+        torch.from_numpy(data.altitude),
+        torch.from_numpy(data.labels),
+    )
+
+
+def train_local(
+    model: nn.Module,
+    data: WindowSet,
+    config: TrainConfig,
+    regularizer: Regularizer | None = None,
+) -> TrainStats:
+    """Train ``model`` in place for ``config.epochs`` epochs of MSE on ``data``.
+
+    Minimises ``MSE(model(x, h), y) + regularizer(model)``; the data are shuffled each epoch
+    with a generator seeded by ``config.seed`` (dropout uses the same seed).
+    """
+    if len(data) == 0:
+        raise ValueError("train_local: no training windows")
+    features, altitude, labels = _tensors(data)
+    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, fused=True)
+    generator = torch.Generator().manual_seed(config.seed)
+    torch.manual_seed(config.seed)
+    model.train()
+    n = len(data)
+    started = time.perf_counter()
+    epoch_loss = float("nan")
+    for _ in range(config.epochs):
+        order = torch.randperm(n, generator=generator)
+        total = 0.0
+        for i in range(0, n, config.batch_size):
+            idx = order[i : i + config.batch_size]
+            prediction = model(features[idx], altitude[idx])  # (b, L_f, 2) m
+            loss = F.mse_loss(prediction, labels[idx])
+            objective = loss if regularizer is None else loss + regularizer(model)
+            optimiser.zero_grad(set_to_none=True)
+            objective.backward()
+            optimiser.step()
+            total += float(loss.detach()) * idx.numel()
+        epoch_loss = total / n
+    return TrainStats(n, epoch_loss, (time.perf_counter() - started) / config.epochs)
+
+
+@torch.no_grad()
+def evaluate(model: nn.Module, data: WindowSet, batch_size: int = 1024) -> float:
+    """Test MSE in m^2 of ``model`` on ``data`` (dropout off)."""
+    if len(data) == 0:
+        raise ValueError("evaluate: no test windows")
+    features, altitude, labels = _tensors(data)
+    model.eval()
+    total = 0.0
+    for i in range(0, len(data), batch_size):
+        prediction = model(features[i : i + batch_size], altitude[i : i + batch_size])
+        total += float(F.mse_loss(prediction, labels[i : i + batch_size], reduction="sum"))
+    return total / labels.numel()

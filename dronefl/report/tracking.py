@@ -1,0 +1,180 @@
+"""Plots of a closed-loop episode: trajectories, errors over time, an animation, Table I."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.animation import FuncAnimation, PillowWriter
+from matplotlib.patches import Rectangle
+
+from dronefl.config import Scenario
+from dronefl.io import atomic_write_bytes
+from dronefl.report.topdown import DRONE_COLOURS, TARGET_COLOURS, draw_field, save_figure
+from dronefl.sim.camera import PinholeCamera
+from dronefl.sim.environment import FarmEnvironment
+
+
+def plot_episode(
+    scenario: Scenario,
+    env: FarmEnvironment,
+    camera: PinholeCamera,
+    log,
+    out: Path,
+    method: str,
+    animate: bool = True,
+    gif_frames: int = 100,
+) -> None:
+    """Write ``trajectories.png``, ``timeseries.png`` and (``animate``) ``episode.gif``."""
+    _trajectories(scenario, env, log, out / "trajectories.png", method)
+    _timeseries(scenario, log, out / "timeseries.png", method)
+    if animate:
+        _animation(scenario, env, camera, log, out / "episode.gif", method, gif_frames)
+
+
+def _trajectories(scenario, env, log, path: Path, method: str) -> None:
+    fig, ax = plt.subplots(figsize=(10, 7.8))
+    draw_field(ax, env)
+    for j, target_id in enumerate(scenario.target_ids):
+        colour = TARGET_COLOURS[j % len(TARGET_COLOURS)]
+        ax.plot(*log.target_position[:, j].T, color=colour, lw=1.6, label=f"target {target_id}")
+        ax.plot(*log.track_position[:, j].T, ":", color=colour, lw=1.0)
+    for i, drone in enumerate(scenario.drones):
+        colour = DRONE_COLOURS[i % len(DRONE_COLOURS)]
+        ax.plot(
+            *log.drone_position[:, i].T,
+            "--",
+            color=colour,
+            lw=1.1,
+            label=f"drone {drone.id} ({drone.altitude:.0f} m)",
+        )
+    ax.plot([], [], ":", color="grey", label="fused track (EKF)")
+    ax.set_title(f"{scenario.name}, {method}: true paths (solid), fused tracks (dotted)")
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    save_figure(fig, path)
+
+
+def _timeseries(scenario, log, path: Path, method: str) -> None:
+    t = log.t[:-1]
+    column = {t_id: j for j, t_id in enumerate(scenario.target_ids)}
+    errors = np.full((len(t), len(scenario.drones), len(scenario.targets)), np.nan)
+    for i, drone in enumerate(scenario.drones):
+        for target_id in drone.targets:
+            j = column[target_id]
+            diff = log.prediction[:, i, j] - log.target_position[1:, j]
+            errors[:, i, j] = (diff**2).sum(axis=-1)
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    window = 25  # steps (5 s) of running mean
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # steps where nothing is predicted
+        mean_error, mean_trace = np.nanmean(errors, axis=(1, 2)), np.nanmean(log.trace, axis=1)
+    series = [
+        (mean_error, "prediction error (m²)", True),
+        (mean_trace, "uncertainty Tr P", True),
+        (log.cost, "planner cost J", True),
+    ]
+    for ax, (values, label, log_scale) in zip(axes, series, strict=True):
+        ax.plot(t, values, color="0.75", lw=0.6)
+        ax.plot(t, _running_mean(values, window), color="C0", lw=1.4, label="5 s mean")
+        for step in log.fl_steps:
+            ax.axvline(log.t[step], color="C3", lw=0.8, ls="--")
+        ax.set_ylabel(label)
+        if log_scale:
+            ax.set_yscale("log")
+    if log.fl_steps:
+        axes[0].plot([], [], color="C3", ls="--", label="FL round")
+    axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title(f"{scenario.name}, {method}")
+    axes[-1].set_xlabel("time (s)")
+    save_figure(fig, path)
+
+
+def _running_mean(values: np.ndarray, window: int) -> np.ndarray:
+    ok = np.isfinite(values)
+    filled = np.where(ok, values, 0.0)
+    sums = np.convolve(filled, np.ones(window), mode="same")
+    counts = np.convolve(ok.astype(float), np.ones(window), mode="same")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return sums / counts
+
+
+def _animation(scenario, env, camera, log, path: Path, method: str, frames: int) -> None:
+    """Top-down animation: vehicles, fused tracks, drones and their camera footprints."""
+    fig, ax = plt.subplots(figsize=(6.4, 5.0))
+    draw_field(ax, env)
+    n_steps = len(log.t) - 1
+    steps = np.linspace(0, n_steps, frames).astype(int)
+    target_dots = ax.scatter(
+        *log.target_position[0].T,
+        s=30,
+        zorder=4,
+        c=[TARGET_COLOURS[j % 10] for j in range(len(scenario.targets))],
+    )
+    track_dots = ax.scatter(
+        *np.zeros((2, len(scenario.targets))), s=60, marker="x", color="k", lw=1.0, zorder=5
+    )
+    footprints = []
+    for i, drone in enumerate(scenario.drones):
+        hx, hy = camera.footprint_half_extent(drone.altitude)
+        patch = Rectangle(
+            (0, 0),
+            2 * hx,
+            2 * hy,
+            fill=False,
+            lw=1.2,
+            edgecolor=DRONE_COLOURS[i % len(DRONE_COLOURS)],
+        )
+        ax.add_patch(patch)
+        footprints.append((patch, hx, hy))
+    title = ax.set_title("")
+
+    def draw(k: int):
+        target_dots.set_offsets(log.target_position[k])
+        track = log.track_position[k]
+        track_dots.set_offsets(np.where(np.isfinite(track), track, -100.0))
+        for i, (patch, hx, hy) in enumerate(footprints):
+            x, y = log.drone_position[k, i]
+            patch.set_xy((x - hx, y - hy))
+        fl = sum(1 for s in log.fl_steps if s <= k)
+        title.set_text(f"{scenario.name} {method}  t = {log.t[k]:5.0f} s  FL rounds: {fl}")
+        return target_dots, track_dots, title
+
+    animation = FuncAnimation(fig, draw, frames=steps, blit=False)
+    buffer_path = path.with_suffix(".tmp.gif")
+    animation.save(buffer_path, writer=PillowWriter(fps=10), dpi=70)
+    plt.close(fig)
+    atomic_write_bytes(path, buffer_path.read_bytes())
+    buffer_path.unlink()
+
+
+def plot_table1_bars(rows: list[dict], path: Path) -> Path:
+    """Bar chart of prediction error and tracking distance per case and method (mean ± std)."""
+    cases = sorted({r["case"] for r in rows})
+    methods = [
+        m for m in ("centralized", "fixed", "dronefl") if any(r["method"] == m for r in rows)
+    ]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    width = 0.8 / max(len(methods), 1)
+    for ax, metric, label in zip(
+        axes,
+        ("prediction_error", "tracking_distance"),
+        ("prediction error (m²)", "tracking distance (m²)"),
+        strict=True,
+    ):
+        for k, method in enumerate(methods):
+            means = [_stat(rows, c, method, metric)[0] for c in cases]
+            stds = [_stat(rows, c, method, metric)[1] for c in cases]
+            x = np.arange(len(cases)) + (k - (len(methods) - 1) / 2) * width
+            ax.bar(x, means, width, yerr=stds, capsize=3, label=method)
+        ax.set_xticks(np.arange(len(cases)), [f"Case {c}" for c in cases])
+        ax.set_ylabel(label)
+        ax.set_yscale("log")
+    axes[0].legend(fontsize=8)
+    return save_figure(fig, path)
+
+
+def _stat(rows: list[dict], case: int, method: str, metric: str) -> tuple[float, float]:
+    values = [r[metric] for r in rows if r["case"] == case and r["method"] == method]
+    return (float(np.mean(values)), float(np.std(values))) if values else (np.nan, 0.0)

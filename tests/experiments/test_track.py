@@ -1,0 +1,136 @@
+"""The closed loop: metrics by hand, the onboard record, pseudo-labels, a short episode."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from dronefl.config import load_scenario
+from dronefl.experiments.pretrain import pretrain_settings
+from dronefl.experiments.simulate import simulate
+from dronefl.experiments.track import EpisodeLog, TrackConfig, episode_metrics, run_episode
+from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
+from dronefl.logs import LogError, PseudoLabels, load_run
+from dronefl.models.model import build_model, predictor_config
+from dronefl.models.online import OnboardRecord
+from dronefl.models.train import TrainConfig, train_local
+from dronefl.models.windows import WindowSet, WindowSpec, build_windows, ground_truth_labels
+from dronefl.types import Detection, Odometry
+
+
+def test_episode_metrics_by_hand():
+    scenario = load_scenario("case1")  # drone 1 watches target 1, drone 2 target 2
+    k = 2
+    log = EpisodeLog(
+        t=np.array([0.0, 0.2, 0.4]),
+        target_position=np.array([[[0, 0], [10, 0]], [[1, 0], [11, 0]], [[2, 0], [12, 0]]], float),
+        drone_position=np.array([[[0, 3], [10, 4]]] * 3, float),
+        drone_velocity=np.array([[[0, 0], [0, 0]], [[1, 0], [0, 0]], [[1, 0], [0, 2]]], float),
+        prediction=np.full((k, 2, 2, 2), np.nan),
+        track_position=np.full((3, 2, 2), np.nan),
+        trace=np.array([[1.0, 3.0], [np.nan, 2.0]]),
+        cost=np.array([10.0, 20.0]),
+    )
+    log.prediction[0, 0, 0] = [1, 1]  # truth at k+1 = (1, 0): squared error 1
+    log.prediction[1, 1, 1] = [12, 3]  # truth (12, 0): squared error 9
+    log.prediction[1, 0, 1] = [0, 0]  # drone 1 does not watch target 2: ignored
+    metrics = episode_metrics(log, scenario)
+    assert metrics["prediction_error"] == pytest.approx(5.0)
+    assert metrics["prediction_coverage"] == pytest.approx(2 / 4)
+    # Squared distances at steps 0 and 1: drone 1: 9, 10; drone 2: 16, 17.
+    assert metrics["tracking_distance"] == pytest.approx((9 + 10 + 16 + 17) / 4)
+    assert metrics["uncertainty"] == pytest.approx(2.0)
+    # |v1 - v0| per drone over steps 0 -> 1: drone 1 moved 0 -> 1 m/s, drone 2 stayed.
+    assert metrics["speed_change"] == pytest.approx(0.5)
+    assert metrics["total_cost"] == pytest.approx(15.0)
+
+
+def test_onboard_record_windows_and_log():
+    record = OnboardRecord(2, 35.0, (1, 2, 3), (1, 2), capacity=4, meta={})
+    for k in range(3):
+        detections = [Detection(2, (0.5, 0.5, 0.1, 0.1), 0.9)] if k != 1 else []
+        record.append(Odometry(0.2 * k, np.full(12, float(k))), detections)
+    assert record.window(4) is None
+    odometry, boxes, detected = record.window(2)
+    assert odometry[:, 0].tolist() == [1.0, 2.0]
+    assert boxes.shape == (2, 2, 4) and detected.tolist() == [[False, False], [False, True]]
+    log = record.to_log()
+    assert log.t.tolist() == pytest.approx([0.0, 0.2, 0.4]) and log.assigned_ids == (1, 2)
+    record.append(Odometry(0.6, np.zeros(12)), [])
+    with pytest.raises(IndexError, match="onboard record is full"):
+        record.append(Odometry(0.8, np.zeros(12)), [])
+
+
+def test_pseudo_labels_round_trip_and_alignment(tmp_path):
+    record = OnboardRecord(1, 30.0, (1, 2), (1,), capacity=2, meta={})
+    record.append(Odometry(0.0, np.zeros(12)), [])
+    record.append(Odometry(0.2, np.zeros(12)), [])
+    labels = PseudoLabels(np.array([0.0, 0.2]), np.array([2, 1]), np.arange(8.0).reshape(2, 2, 2))
+    labels.save(tmp_path / "tracks.npz")
+    back = PseudoLabels.load(tmp_path / "tracks.npz")
+    aligned = back.for_log(record.to_log())  # the log's columns are (1, 2)
+    assert aligned[:, 0].tolist() == [[2.0, 3.0], [6.0, 7.0]]
+    shifted = PseudoLabels(np.array([0.0, 0.4]), labels.target_ids, labels.position)
+    with pytest.raises(LogError, match="another time grid"):
+        shifted.for_log(record.to_log())
+
+
+@pytest.fixture(scope="module")
+def quick_pretrained(tmp_path_factory):
+    """A DroneFL model trained for a few seconds on 120 s of crop field, cached where the
+    closed loop looks for pretrained weights."""
+    folder = tmp_path_factory.mktemp("pretrained")
+    data = folder / "data"
+    simulate(
+        load_scenario("case1"),
+        environment="crop_field",
+        duration=120.0,
+        seed=5,
+        out=data,
+        progress=False,
+        plot=False,
+    )
+    logs, truth = load_run(data)
+    spec = WindowSpec(10, 1, relative=True, stride=1)
+    windows = WindowSet.concat(
+        [build_windows(log, ground_truth_labels(log, truth), spec) for log in logs.values()]
+    )
+    model = build_model(predictor_config("dronefl", 10, 1), seed=0)
+    torch.set_num_threads(1)
+    train_local(model, windows, TrainConfig(epochs=15, seed=0))
+    settings = pretrain_settings(1, "dronefl", folder)
+    save_checkpoint(
+        settings.checkpoint_path,
+        settings.history_path,
+        Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
+    )
+    return folder
+
+
+def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, tmp_path):
+    config = TrackConfig(
+        case=1,
+        method="fixed",
+        seed=3,
+        duration=40.0,
+        environment="crop_field",
+        runtime="torch",
+        pretrained=quick_pretrained,
+        out=tmp_path,
+        progress=False,
+    )
+    metrics = run_episode(config)
+    # Every prediction the drones made and every fused track stay within a few metres.
+    assert metrics["prediction_coverage"] > 0.9
+    assert metrics["prediction_error"] < 4.0
+    assert metrics["tracking_error"] < 4.0
+    # Each drone stays over its target: well inside a 9 m half-footprint (drone 2 at 20 m).
+    assert metrics["tracking_distance"] < 30.0
+    assert metrics["fl_rounds"] == []
+    saved = json.loads((tmp_path / "metrics.json").read_text())
+    assert saved["prediction_error"] == pytest.approx(metrics["prediction_error"])
+    for name in ("trajectories.png", "timeseries.png", "episode.npz"):
+        assert (tmp_path / name).stat().st_size > 0
+    again = run_episode(config)
+    assert again["prediction_error"] == metrics["prediction_error"]

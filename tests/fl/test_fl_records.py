@@ -1,0 +1,75 @@
+"""The records adapter and checkpoints: round trips and clear errors."""
+
+import numpy as np
+import pytest
+import torch
+from flwr.app import ConfigRecord
+
+from dronefl.fl.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
+from dronefl.fl.records import (
+    ClientReport,
+    FlSettings,
+    SettingsError,
+    TrainInstructions,
+    to_arrays,
+    to_state,
+)
+
+
+def test_settings_survive_the_run_config():
+    settings = FlSettings("runs/x", "out/y", method="fedprox", rounds=7, proximal_mu=0.5)
+    config = settings.to_run_config()
+    assert config["run-dir"] == "runs/x" and config["proximal-mu"] == 0.5
+    assert FlSettings.from_run_config(config) == settings
+
+
+@pytest.mark.parametrize(
+    ("config", "message"),
+    [
+        ({"out-dir": "o"}, "missing key 'run-dir'"),
+        ({"run-dir": "r", "out-dir": "o", "rounds": "5"}, "'rounds' must be int"),
+        ({"run-dir": "r", "out-dir": "o", "method": "fedsgd"}, "unknown 'fedsgd'"),
+        ({"run-dir": "r", "out-dir": "o", "epochs": 0}, "epochs: must be >= 1"),
+    ],
+)
+def test_bad_run_config_names_the_key(config, message):
+    with pytest.raises(SettingsError, match=message):
+        FlSettings.from_run_config(config)
+
+
+def test_model_weights_and_reports_round_trip():
+    state = {"a": torch.arange(6.0).reshape(2, 3), "b": torch.tensor([1.5])}
+    back = to_state(to_arrays(state))
+    assert all(torch.equal(state[k], back[k]) for k in state)
+    report = ClientReport(drone_id=3, num_examples=40, value=0.25)
+    assert ClientReport.from_metrics(report.to_metrics()) == report
+    instructions = TrainInstructions.from_config(
+        ConfigRecord({"server-round": 4, "proximal-mu": 0.1})
+    )
+    assert instructions == TrainInstructions(4, 0.1)
+    assert TrainInstructions.from_config(ConfigRecord({"server-round": 2})).proximal_mu == 0.0
+
+
+def test_checkpoint_round_trip_and_damage(tmp_path):
+    path, history_path = tmp_path / "checkpoint.npz", tmp_path / "history.json"
+    state = {"w": torch.tensor([1.0, 2.0])}
+    history = [{"round": 1, "mean_test_mse": 3.0}, {"round": 2, "mean_test_mse": 2.0}]
+    save_checkpoint(path, history_path, Checkpoint("dronefl", 2, state, history))
+
+    back = load_checkpoint(path, history_path, "dronefl")
+    assert back.server_round == 2 and back.history == history
+    torch.testing.assert_close(back.state["w"], state["w"])
+    with pytest.raises(CheckpointError, match="not 'fedavg'"):
+        load_checkpoint(path, history_path, "fedavg")
+    path.write_bytes(path.read_bytes()[:40])
+    with pytest.raises(CheckpointError, match="truncated or corrupt"):
+        load_checkpoint(path, history_path, "dronefl")
+    with pytest.raises(CheckpointError, match="no checkpoint"):
+        load_checkpoint(tmp_path / "none.npz", history_path, "dronefl")
+
+
+def test_non_finite_checkpoint_is_refused(tmp_path):
+    path, history_path = tmp_path / "c.npz", tmp_path / "h.json"
+    save_checkpoint(path, history_path, Checkpoint("fedavg", 1, {"w": torch.tensor([np.nan])}, []))
+    with pytest.raises(CheckpointError, match="non-finite"):
+        load_checkpoint(path, history_path, "fedavg")

@@ -1,0 +1,35 @@
+"""A 2-drone, 2-round Flower simulation end to end, interrupted after round 1 and resumed."""
+
+import json
+import math
+
+import pytest
+
+from dronefl.fl.records import FlSettings
+from dronefl.fl.simulation import run_federated
+
+
+@pytest.mark.slow
+def test_two_drones_two_rounds_with_resume(case1_run, tmp_path):
+    settings = FlSettings(str(case1_run), str(tmp_path / "fedper"), method="fedper", rounds=1,
+                          epochs=2, stride=5)  # fmt: skip
+    seen = []
+    first = run_federated(settings, on_round=seen.append)
+    assert [h["round"] for h in first] == [1] and len(seen) == 1
+
+    resumed = FlSettings(**{**settings.__dict__, "rounds": 2, "resume": True})
+    history = run_federated(resumed)
+
+    assert [h["round"] for h in history] == [1, 2]
+    assert json.loads(resumed.history_path.read_text()) == history
+    for entry in history:
+        assert set(entry["test_mse"]) == {"1", "2"}
+        assert all(math.isfinite(v) for v in entry["test_mse"].values())
+        assert entry["rejected"] == []
+        down, up = entry["bytes"]["down"], entry["bytes"]["up"]
+        assert down["train"] > 2 * 11_000 * 4 and up["train"] > 2 * 11_000 * 4  # ~11k floats
+    # FedPer's personal heads live on the drones' own disks, one per drone.
+    assert sorted(p.name for p in (tmp_path / "fedper" / "personal").iterdir()) == [
+        "drone_1.npz",
+        "drone_2.npz",
+    ]

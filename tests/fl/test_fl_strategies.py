@@ -1,0 +1,137 @@
+"""Server aggregation: FedAvg's weighted average, screening of bad updates, FedPer, bytes."""
+
+import numpy as np
+import pytest
+import torch
+from flwr.app import Array, ArrayRecord, ConfigRecord, Context, Error, Message, RecordDict
+
+from dronefl.fl.client_app import PERSONAL_KEY, _local_model, handle_train
+from dronefl.fl.comm import CountingGrid, message_bytes
+from dronefl.fl.methods import METHODS
+from dronefl.fl.records import ClientReport, FlSettings, to_arrays
+from dronefl.fl.server_app import initial_state
+from dronefl.fl.strategies import RobustFedAvg, RobustFedProx, make_strategy
+
+
+def _reply(drone: int, n: int, **arrays: np.ndarray) -> Message:
+    content = RecordDict(
+        {
+            "arrays": ArrayRecord({k: Array(v) for k, v in arrays.items()}),
+            "metrics": ClientReport(drone, n, 1.0).to_metrics(),
+        }
+    )
+    return Message(content=content, dst_node_id=0, message_type="train")
+
+
+def _aggregate(strategy, replies, keys=("w",)):
+    strategy._sent_keys = set(keys)
+    return strategy.aggregate_train(1, replies)
+
+
+def test_fedavg_is_the_sample_weighted_average():
+    # Prepare: drone 1 has 1 window and w = [1, 2]; drone 2 has 3 windows and w = [3, 6].
+    replies = [_reply(1, 1, w=np.array([1.0, 2.0])), _reply(2, 3, w=np.array([3.0, 6.0]))]
+    # Execute
+    arrays, _ = _aggregate(RobustFedAvg(num_drones=2), replies)
+    # Assert: (1 * [1, 2] + 3 * [3, 6]) / 4 = [2.5, 5].
+    np.testing.assert_allclose(arrays["w"].numpy(), [2.5, 5.0])
+
+
+def _crashed() -> Message:
+    return Message(Error(code=1, reason="drone crashed"), reply_to=_reply(3, 1, w=np.zeros(2)))
+
+
+@pytest.mark.parametrize(
+    ("make_bad", "reason"),
+    [
+        (lambda: _reply(3, 5, w=np.array([np.nan, 0.0])), "non-finite"),
+        (lambda: _reply(3, 5, w=np.array([1e9, 0.0])), "absurd"),
+        (lambda: _reply(3, 5, v=np.array([1.0, 1.0])), "unexpected keys"),
+        (_crashed, "drone crashed"),
+    ],
+)
+def test_a_bad_update_is_left_out_and_logged(make_bad, reason):
+    strategy = RobustFedAvg(num_drones=3)
+    good = [_reply(1, 1, w=np.array([1.0, 2.0])), _reply(2, 3, w=np.array([3.0, 6.0]))]
+    arrays, _ = _aggregate(strategy, [*good, make_bad()])
+    np.testing.assert_allclose(arrays["w"].numpy(), [2.5, 5.0])
+    assert len(strategy.logs[1].rejected) == 1
+    assert reason in strategy.logs[1].rejected[0]
+    assert sorted(strategy.logs[1].train_loss) == [1, 2]
+
+
+def test_without_any_valid_update_the_global_model_is_kept():
+    strategy = RobustFedAvg(num_drones=1)
+    arrays, metrics = _aggregate(strategy, [_reply(1, 1, w=np.array([np.inf]))])
+    assert arrays is None and metrics is None
+
+
+def test_fedprox_sends_mu_and_rounds_continue_after_resume():
+    strategy = make_strategy(METHODS["fedprox"], num_drones=1, proximal_mu=0.3, round_offset=7)
+    assert isinstance(strategy, RobustFedProx)
+
+    class OneNode:
+        def get_node_ids(self):
+            return [11]
+
+    messages = list(
+        strategy.configure_train(1, to_arrays({"w": torch.ones(2)}), ConfigRecord(), OneNode())
+    )
+    config = messages[0].content["config"]
+    assert config["proximal-mu"] == 0.3 and config["server-round"] == 8
+
+
+def test_fedper_head_stays_on_the_drone_and_survives_aggregation(case1_run, tmp_path):
+    settings = FlSettings(str(case1_run), str(tmp_path), method="fedper", rounds=2, epochs=1)
+    body = initial_state(settings)
+    assert not any(k.startswith("head.") for k in body)
+    # A drone whose personal head is all 7s trains one round.
+    context = Context(
+        run_id=1, node_id=1, node_config={"partition-id": 0}, state=RecordDict(), run_config={}
+    )
+    head = {"head.weight": torch.full((2, 16), 7.0), "head.bias": torch.full((2,), 7.0)}
+    context.state[PERSONAL_KEY] = to_arrays(head)
+    msg = Message(
+        RecordDict({"arrays": to_arrays(body), "config": ConfigRecord({"server-round": 2})}),
+        dst_node_id=1,
+        message_type="train",
+    )
+    reply = handle_train(msg, context, settings)
+    sent = reply.content["arrays"]
+    assert set(sent.keys()) == set(body)  # the head never leaves the drone
+    trained_head = context.state[PERSONAL_KEY].to_torch_state_dict()
+    assert not torch.equal(trained_head["head.weight"], head["head.weight"])  # it trained
+    # The cloud averages bodies only; the drone's model for the next round keeps its own head.
+    strategy = RobustFedAvg(num_drones=2)
+    strategy._sent_keys = set(body)
+    second = _reply(2, 10, **{k: v.numpy() * 0 for k, v in body.items()})
+    arrays, _ = strategy.aggregate_train(1, [reply, second])
+    model = _local_model(settings, arrays.to_torch_state_dict(), context, 1, 3)
+    for k, v in trained_head.items():
+        torch.testing.assert_close(model.state_dict()[k], v)
+
+
+def test_counting_grid_adds_up_every_message():
+    class EchoGrid:
+        def send_and_receive(self, messages, *, timeout=None):
+            return [_reply(1, 1, w=np.ones(3)) for _ in messages]
+
+    grid = CountingGrid(EchoGrid())
+    sent = [
+        Message(
+            RecordDict(
+                {
+                    "arrays": ArrayRecord({"w": Array(np.zeros(100))}),
+                    "config": ConfigRecord({"server-round": 4}),
+                }
+            ),
+            dst_node_id=n,
+            message_type="train",
+        )
+        for n in (1, 2)
+    ]
+    replies = grid.send_and_receive(sent, timeout=1)
+    traffic = grid.traffic.of_round(4)
+    assert traffic["down"]["train"] == sum(message_bytes(m) for m in sent)
+    assert traffic["up"]["train"] == sum(message_bytes(m) for m in replies)
+    assert traffic["down"]["train"] > 2 * 100 * 8  # at least the float64 payload

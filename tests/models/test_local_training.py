@@ -1,0 +1,63 @@
+"""Local training: FedProx's proximal term, determinism, learning, the MSE metric."""
+
+import numpy as np
+import torch
+from torch import nn
+
+from dronefl.models.model import build_model, predictor_config
+from dronefl.models.train import TrainConfig, evaluate, proximal_term, train_local
+from dronefl.models.windows import WindowSpec, build_windows
+
+
+def test_proximal_term_value_and_gradient():
+    # Prepare: w = [1, 2], b = [0.5]; reference w_g = [0, 4], b_g = [0.5]; mu = 0.2.
+    model = nn.Linear(2, 1)
+    with torch.no_grad():
+        model.weight.copy_(torch.tensor([[1.0, 2.0]]))
+        model.bias.copy_(torch.tensor([0.5]))
+    reference = {"weight": torch.tensor([[0.0, 4.0]]), "bias": torch.tensor([0.5])}
+    term = proximal_term(reference, mu=0.2)
+    # Execute
+    value = term(model)
+    value.backward()
+    # Assert: (mu/2) ||w - w_g||^2 = 0.1 * (1 + 4) = 0.5; gradient mu (w - w_g) = [0.2, -0.4].
+    assert value.item() == torch.tensor(0.5).item()
+    torch.testing.assert_close(model.weight.grad, torch.tensor([[0.2, -0.4]]))
+    torch.testing.assert_close(model.bias.grad, torch.tensor([0.0]))
+
+
+def test_proximal_term_keeps_its_own_copy_of_the_reference():
+    model = nn.Linear(1, 1, bias=False)
+    reference = {"weight": model.weight.detach().clone()}
+    term = proximal_term(reference, mu=1.0)
+    reference["weight"].add_(10.0)  # changing the caller's dict afterwards has no effect
+    assert term(model).item() == 0.0
+
+
+def _windows(tiny_log):
+    log, labels = tiny_log
+    return build_windows(log, labels, WindowSpec(past_steps=3, future_steps=2))
+
+
+def test_training_is_seeded_and_lowers_the_loss(tiny_log):
+    data = _windows(tiny_log)
+    config = predictor_config("dronefl", past_steps=3, future_steps=2)
+    models = [build_model(config, seed=0) for _ in range(2)]
+    before = evaluate(models[0], data)
+    stats = [train_local(m, data, TrainConfig(epochs=20, batch_size=4, seed=7)) for m in models]
+    after = evaluate(models[0], data)
+    assert stats[0].loss == stats[1].loss
+    for k, v in models[0].state_dict().items():
+        torch.testing.assert_close(v, models[1].state_dict()[k])
+    assert after < before
+
+
+class _Zero(nn.Module):
+    def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
+        return torch.zeros(features.shape[0], 2, 2)
+
+
+def test_evaluate_is_the_mean_squared_error_in_square_metres(tiny_log):
+    data = _windows(tiny_log)
+    # A model predicting the origin has MSE = mean of the squared labels.
+    assert np.isclose(evaluate(_Zero(), data), np.mean(data.labels.astype(np.float64) ** 2))

@@ -1,0 +1,118 @@
+"""The transformer: AdaIN statistics, attention against PyTorch's, variants, masking."""
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from dronefl.models.model import (
+    AltitudeAdaIN,
+    Attention,
+    PredictorConfig,
+    _LastDimSoftmax,
+    build_model,
+    count_parameters,
+    predictor_config,
+)
+from dronefl.models.windows import FEATURE_DIM, window_features
+
+
+def test_adain_output_has_the_styles_mean_and_std():
+    # Prepare: style (mu, sigma) = A h/50 + b with A = [1, 2 | 3, 4], b = [0.5, -1 | 0.2, 2].
+    adain = AltitudeAdaIN(channels=2)
+    with torch.no_grad():
+        adain.style.weight.copy_(torch.tensor([[1.0], [2.0], [3.0], [4.0]]))
+        adain.style.bias.copy_(torch.tensor([0.5, -1.0, 0.2, 2.0]))
+    z = torch.randn(3, 10, 2) * 5 + 7  # (B, T, C)
+    altitude = torch.tensor([25.0, 50.0, 100.0])  # m -> h = 0.5, 1, 2
+    # Execute
+    out = adain(z, altitude)
+    # Assert: per instance and channel, mean over time = mu, std over time = |sigma|.
+    h = (altitude / 50.0)[:, None]
+    mu = torch.cat([1.0 * h + 0.5, 2.0 * h - 1.0], dim=1)  # (B, C)
+    sigma = torch.cat([3.0 * h + 0.2, 4.0 * h + 2.0], dim=1)
+    torch.testing.assert_close(out.mean(dim=1), mu, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(out.std(dim=1, unbiased=False), sigma.abs(), atol=1e-3, rtol=1e-3)
+
+
+def test_adain_needs_more_than_one_step():
+    with pytest.raises(ValueError, match="at least 2 time steps"):
+        AltitudeAdaIN(4)(torch.zeros(2, 1, 4), torch.ones(2))
+
+
+def test_attention_matches_torch_multihead_attention():
+    torch.manual_seed(0)
+    ours = Attention(d_model=16, n_heads=4, dropout=0.0).eval()
+    ref = nn.MultiheadAttention(16, 4, batch_first=True).eval()
+    with torch.no_grad():
+        ref.in_proj_weight.copy_(ours.in_proj.weight)
+        ref.in_proj_bias.copy_(ours.in_proj.bias)
+        ref.out_proj.weight.copy_(ours.out_proj.weight)
+        ref.out_proj.bias.copy_(ours.out_proj.bias)
+    x, memory = torch.randn(5, 3, 16), torch.randn(5, 10, 16)
+    torch.testing.assert_close(ours(x), ref(x, x, x, need_weights=False)[0])
+    torch.testing.assert_close(ours(x, memory), ref(x, memory, memory, need_weights=False)[0])
+
+
+def test_softmax_gradient_is_exact():
+    a = torch.randn(2, 3, 4, 5, dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(_LastDimSoftmax.apply, (a,))
+    torch.testing.assert_close(_LastDimSoftmax.apply(a), a.softmax(-1))
+
+
+@pytest.mark.parametrize("variant", ["dronefl", "plain", "large"])
+def test_every_variant_predicts_lf_positions(variant):
+    model = build_model(predictor_config(variant, past_steps=10, future_steps=5)).eval()
+    out = model(torch.randn(7, 10, FEATURE_DIM), torch.full((7,), 30.0))
+    assert out.shape == (7, 5, 2)
+    assert torch.isfinite(out).all()
+
+
+def test_variants_differ_as_specified():
+    dronefl, plain, large = (predictor_config(v) for v in ("dronefl", "plain", "large"))
+    assert (dronefl.adain, dronefl.relative) == (True, True)
+    assert (plain.adain, plain.relative) == (False, False)
+    assert (dronefl.d_model, dronefl.n_heads, dronefl.d_ff) == (16, 4, 32)
+    assert large.d_model == 64
+    n = {v: count_parameters(build_model(predictor_config(v))) for v in ("dronefl", "plain")}
+    # AdaIN adds A (16 x 2, times 2 layers) and b (32, times 2 layers) = 128 parameters.
+    assert n["dronefl"] - n["plain"] == 128
+
+
+def test_lf_of_one_works_with_encoder_side_adain():
+    model = build_model(PredictorConfig(past_steps=10, future_steps=1)).eval()
+    assert model(torch.randn(2, 10, FEATURE_DIM), torch.tensor([20.0, 40.0])).shape == (2, 1, 2)
+
+
+def test_missed_detections_do_not_change_the_prediction():
+    rng = np.random.default_rng(1)
+    odometry = rng.normal(size=(10, 12))
+    detected = np.array([True] * 5 + [False] * 5)
+    boxes = rng.uniform(size=(10, 4))
+    junk = boxes.copy()
+    junk[~detected] = rng.uniform(size=(5, 4))  # different garbage where the target was missed
+    model = build_model(predictor_config("dronefl")).eval()
+    h = torch.tensor([30.0])
+    outs = [
+        model(torch.from_numpy(window_features(b, detected, odometry, np.zeros(2), True))[None], h)
+        for b in (boxes, junk)
+    ]
+    torch.testing.assert_close(outs[0], outs[1])
+
+
+def test_same_seed_same_weights():
+    a = build_model(predictor_config("dronefl"), seed=3).state_dict()
+    b = build_model(predictor_config("dronefl"), seed=3).state_dict()
+    c = build_model(predictor_config("dronefl"), seed=4).state_dict()
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_bad_shapes_and_configs_are_rejected():
+    model = build_model(predictor_config("dronefl"))
+    with pytest.raises(ValueError, match="features must have shape"):
+        model(torch.zeros(2, 9, FEATURE_DIM), torch.ones(2))
+    with pytest.raises(ValueError, match="multiple of n_heads"):
+        PredictorConfig(d_model=10, n_heads=4)
+    with pytest.raises(ValueError, match="unknown predictor variant"):
+        predictor_config("huge")
