@@ -32,7 +32,7 @@ from PIL import Image
 
 from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.perception.palette import COLOUR_NAMES, MAX_TARGETS
-from dronefl.perception.projection import ProjectionNoise, vehicle_boxes, vehicle_corners
+from dronefl.perception.projection import ProjectionNoise, visible_boxes
 from dronefl.perception.render import SceneRenderer
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
@@ -131,11 +131,9 @@ def label_scene(
         )  # fmt: skip
     positions = np.array([t.position for t in targets])
     headings = np.array([t.heading for t in targets])
-    boxes, inside = vehicle_boxes(
-        camera, scenario.vehicle, camera_position, yaw, positions, headings
+    boxes, visible = visible_boxes(
+        camera, scenario.vehicle, environment, camera_position, yaw, positions, headings
     )
-    roof = vehicle_corners(scenario.vehicle, positions, headings, z=(1.0,), grid=(5, 3))
-    visible = inside * environment.visible(camera_position, roof).mean(axis=-1)
     keep = visible >= min_visible
     ids = np.array([t.target_id for t in targets])
     return LabelledScene(

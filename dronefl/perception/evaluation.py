@@ -41,8 +41,7 @@ from dronefl.perception.dataset import DATASET_ENVIRONMENTS, LabelledScene, read
 from dronefl.perception.projection import (
     FITTED_NOISE_ASSET,
     ProjectionNoise,
-    vehicle_boxes,
-    vehicle_corners,
+    visible_boxes,
 )
 from dronefl.perception.training import DETECTOR_SIDECAR
 from dronefl.perception.yolo import YoloDetector
@@ -125,9 +124,9 @@ def _all_vehicles(
         return {}
     positions = np.array([t.position for t in scene.targets])
     headings = np.array([t.heading for t in scene.targets])
-    boxes, inside = vehicle_boxes(camera, vehicle, scene.camera_position, 0.0, positions, headings)
-    roof = vehicle_corners(vehicle, positions, headings, z=(1.0,), grid=(5, 3))
-    visible = inside * env.visible(scene.camera_position, roof).mean(axis=-1)
+    boxes, visible = visible_boxes(
+        camera, vehicle, env, scene.camera_position, 0.0, positions, headings
+    )
     centres = np.concatenate([positions, np.full((len(positions), 1), vehicle.height / 2)], 1)
     slant = np.linalg.norm(centres - scene.camera_position, axis=1)
     return {

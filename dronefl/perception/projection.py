@@ -112,6 +112,24 @@ def vehicle_boxes(
     return boxes, inside
 
 
+def visible_boxes(
+    camera: PinholeCamera,
+    vehicle: VehicleSpec,
+    environment: FarmEnvironment,
+    camera_position: np.ndarray,
+    yaw: float,
+    positions: np.ndarray,
+    headings: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Image boxes ``(N, 4)`` of vehicles and the fraction ``(N,)`` of each that can be seen:
+    the part of its hull inside the image times the part of a 5 x 3 grid on its roof (1 m apart)
+    with a clear line of sight past the canopies. The one visibility rule of the projection
+    detector, the detector data set and the detector evaluation."""
+    boxes, inside = vehicle_boxes(camera, vehicle, camera_position, yaw, positions, headings)
+    roof = vehicle_corners(vehicle, positions, headings, z=(1.0,), grid=(5, 3))
+    return boxes, inside * environment.visible(camera_position, roof).mean(axis=-1)
+
+
 class ProjectionDetector(Detector):
     """Projects each vehicle's 3-D box into the image and applies :class:`ProjectionNoise`."""
 
@@ -137,12 +155,15 @@ class ProjectionDetector(Detector):
             return ()
         positions = np.array([t.position for t in view.targets])
         headings = np.array([t.heading for t in view.targets])
-        boxes, inside = vehicle_boxes(
-            self.camera, self.vehicle, view.camera_position, view.yaw, positions, headings
+        boxes, visible = visible_boxes(
+            self.camera,
+            self.vehicle,
+            self.environment,
+            view.camera_position,
+            view.yaw,
+            positions,
+            headings,
         )
-        roof = vehicle_corners(self.vehicle, positions, headings, z=(1.0,), grid=(5, 3))
-        unoccluded = self.environment.visible(view.camera_position, roof).mean(axis=-1)
-        visible = inside * unoccluded
         centre = np.concatenate([positions, np.full((len(positions), 1), 0.5)], axis=-1)
         slant = np.linalg.norm(centre - view.camera_position, axis=-1)
         n = self.noise
