@@ -340,11 +340,11 @@ def run_altitude_study(
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
-    """Drone 1's test MSE per round when drone 2 flies at (almost) the same altitude (30.1 m
+    """Drone 1's test MSE per round when drone 2 flies at (almost) the same altitude (29.9 m
     vs 30 m; scenarios need distinct altitudes) or a different one (20 m). Writes
     ``out/altitude.json`` and ``out/fig4_altitude.png``."""
     study: dict = {"rounds": rounds, "seed": seed, "drone": 1, "curves": {}}
-    for label, altitude in (("same altitude", 30.1), ("different altitude", 20.0)):
+    for label, altitude in (("same altitude", 29.9), ("different altitude", 20.0)):
         config = OfflineConfig(
             1,
             out / label.replace(" ", "_"),

@@ -39,10 +39,13 @@ def run_federated(
     return the round history (also in ``settings.history_path``)."""
     os.environ.setdefault("FLWR_TELEMETRY_ENABLED", "0")
     os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    os.environ.setdefault("RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO", "0")
     config = settings.to_run_config()
     flwr_logger = logging.getLogger("flwr")
     level = flwr_logger.level
-    flwr_logger.setLevel(logging.WARNING)
+    # ERROR: run_simulation warns on every call that `flwr run` is preferred; failed rounds are
+    # reported by the strategy and by the checks below.
+    flwr_logger.setLevel(logging.ERROR)
     try:
         run_simulation(
             server_app=build_server_app(config, on_round),

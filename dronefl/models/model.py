@@ -128,7 +128,7 @@ class AltitudeAdaIN(nn.Module):
             self.style.bias.copy_(torch.cat([torch.zeros(channels), torch.ones(channels)]))
 
     def forward(self, z: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
-        if z.shape[1] < 2:
+        if not torch.jit.is_tracing() and z.shape[1] < 2:  # traced shapes are fixed
             raise ValueError("AltitudeAdaIN needs at least 2 time steps to normalise over time")
         h = (altitude / ALTITUDE_SCALE_M).unsqueeze(-1)  # (B, 1)
         mu, sigma = self.style(h).unsqueeze(1).chunk(2, dim=-1)  # (B, 1, C) each
@@ -174,13 +174,15 @@ class Attention(nn.Module):
     def __init__(self, d_model: int, n_heads: int, dropout: float) -> None:
         super().__init__()
         self.n_heads = n_heads
+        self.d_model = d_model
         self.scale = (d_model // n_heads) ** -0.5
         self.in_proj = nn.Linear(d_model, 3 * d_model)
         self.out_proj = nn.Linear(d_model, d_model)
         self.drop = nn.Dropout(dropout)
 
     def forward(self, x: torch.Tensor, memory: torch.Tensor | None = None) -> torch.Tensor:
-        b, t, c = x.shape
+        b, t, _ = x.shape
+        c = self.d_model  # a Python int, also when traced for TorchScript/ONNX
         if memory is None:
             q, k, v = self.in_proj(x).split(c, dim=-1)  # 3 x (B, T, C)
         else:
@@ -274,7 +276,7 @@ class TrajectoryTransformer(nn.Module):
 
     def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
         b, t, f = features.shape
-        if (t, f) != (self.config.past_steps, self.config.input_dim):
+        if not torch.jit.is_tracing() and (t, f) != (self.config.past_steps, self.config.input_dim):
             raise ValueError(
                 f"features must have shape (B, {self.config.past_steps}, "
                 f"{self.config.input_dim}), got {tuple(features.shape)}"

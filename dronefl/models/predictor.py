@@ -14,6 +14,7 @@ its outputs are world-frame positions in m. Three runtimes give the same numbers
 from __future__ import annotations
 
 import io
+import warnings
 from typing import Literal
 
 import numpy as np
@@ -46,13 +47,16 @@ class TrajectoryPredictor:
         if runtime == "torch":
             return lambda x, h: self.model(torch.from_numpy(x), torch.from_numpy(h)).numpy()
         if runtime == "torchscript":
-            with torch.inference_mode(False), torch.no_grad():
+            with torch.inference_mode(False), torch.no_grad(), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
                 traced = torch.jit.freeze(torch.jit.trace(self.model, example))
             return lambda x, h: traced(torch.from_numpy(x), torch.from_numpy(h)).numpy()
         import onnxruntime
 
         buffer = io.BytesIO()
-        with torch.no_grad():
+        # The tracer warns about the shape checks in forward(); shapes are fixed per model.
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
             torch.onnx.export(
                 self.model,
                 example,
