@@ -4,13 +4,16 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from dronefl.config import ENVIRONMENTS, ScenarioError, builtin_scenarios, load_scenario
 from dronefl.logs import LogError
 from dronefl.perception import DETECTORS
+
+if TYPE_CHECKING:
+    from dronefl.experiments.track import TrackConfig
 
 app = typer.Typer(
     add_completion=False,
@@ -342,7 +345,7 @@ CaseOption = Annotated[int, typer.Option("--case", help="Paper case: 1, 2 or 3."
 TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dronefl")]
 
 
-def _track_config(**kwargs) -> object:
+def _track_config(**kwargs: object) -> TrackConfig:
     from dronefl.experiments.track import TrackConfig
 
     try:

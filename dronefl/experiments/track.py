@@ -34,7 +34,7 @@ from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.fl.records import FlSettings
 from dronefl.fl.simulation import run_federated
-from dronefl.io import atomic_write_json
+from dronefl.io import atomic_savez, atomic_write_json
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
@@ -135,7 +135,7 @@ def run_episode(config: TrackConfig) -> dict:
     model = build_model(model_config)
     model.load_state_dict(state)
     predictor = TrajectoryPredictor(model, runtime=config.runtime)
-    learner = _learner(config, scenario, out, state)
+    learner = _learner(config, out, state)
 
     world = World(scenario, config.environment, config.seed)
     detector = make_detector(config.detector, world)
@@ -165,7 +165,9 @@ def run_episode(config: TrackConfig) -> dict:
             ):
                 detections = detector.detect(view)
                 record.append(odometry, detections)
-                counter.add(record.drone_id, "up", *_uplink(config.method, k, odometry, detections))
+                if config.method == "centralized":
+                    raw = _raw_inputs(record.drone_id, k, odometry, detections)
+                    counter.add(record.drone_id, "up", "raw_inputs", len(raw))
                 window = record.window(config.past_steps)
                 if window is None:
                     continue
@@ -297,13 +299,10 @@ def _record_truth(log: EpisodeLog, k: int, world: World) -> None:
     log.drone_velocity[k] = world.drones.velocity
 
 
-def _uplink(method: str, step: int, odometry, detections) -> tuple[str, int]:
-    """What a drone sends besides predictions: nothing, or its raw inputs (centralized)."""
-    if method != "centralized":
-        return "raw_inputs", 0
-    payload = _RAW_HEAD.pack(0, step, *odometry.vector.astype(np.float32))
-    payload += b"".join(_RAW_BOX.pack(d.target_id, *d.box) for d in detections)
-    return "raw_inputs", len(payload)
+def _raw_inputs(drone_id: int, step: int, odometry, detections) -> bytes:
+    """What a drone of the centralized baseline sends each step: its odometry and boxes."""
+    payload = _RAW_HEAD.pack(drone_id, step, *odometry.vector.astype(np.float32))
+    return payload + b"".join(_RAW_BOX.pack(d.target_id, *d.box) for d in detections)
 
 
 def _labels(source: str, log: EpisodeLog, steps: int) -> np.ndarray:
@@ -314,8 +313,6 @@ def _labels(source: str, log: EpisodeLog, steps: int) -> np.ndarray:
 
 
 def _save_log(path: Path, log: EpisodeLog) -> None:
-    from dronefl.io import atomic_savez
-
     arrays = {k: v for k, v in asdict(log).items() if isinstance(v, np.ndarray)}
     atomic_savez(path, fl_steps=np.array(log.fl_steps, dtype=np.int64), **arrays)
 
@@ -387,7 +384,7 @@ class CentralLearner:
         return self.model.state_dict(), {"round": server_round, "train_loss": stats.loss}
 
 
-def _learner(config: TrackConfig, scenario: Scenario, out: Path, state: dict):
+def _learner(config: TrackConfig, out: Path, state: dict):
     if config.method == "dronefl":
         return FederatedLearner(config, out, state)
     if config.method == "centralized":
