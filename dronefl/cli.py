@@ -138,6 +138,11 @@ ResumeOption = Annotated[
 ]
 
 
+WeightsDtypeOption = Annotated[
+    str, typer.Option("--weights-dtype", help="Model weights on the wire: float32|float16.")
+]
+
+
 def _fl_errors() -> tuple[type[Exception], ...]:
     from dronefl.fl.checkpoint import CheckpointError
     from dronefl.fl.records import SettingsError
@@ -158,6 +163,7 @@ def fl_offline(
     stride: StrideOption = 10,
     mu: Annotated[float, typer.Option("--mu", help="FedProx proximal weight mu.")] = 0.01,
     resume: ResumeOption = False,
+    weights_dtype: WeightsDtypeOption = "float32",
 ) -> None:
     """Offline FL (paper Fig. 5): record the case, train every method, plot and tabulate.
 
@@ -168,7 +174,16 @@ def fl_offline(
 
     try:
         config = OfflineConfig(
-            case, out, rounds, seed, duration, stride, mu, tuple(methods.split(",")), resume
+            case,
+            out,
+            rounds,
+            seed,
+            duration,
+            stride,
+            mu,
+            tuple(methods.split(",")),
+            resume,
+            weights_dtype=weights_dtype,
         )
         typer.echo(parameter_summary())
         results = run_fl_offline(config)
@@ -364,6 +379,7 @@ def track(
     detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: Annotated[str, typer.Option(help="tracks (pseudo-labels) | ground_truth")] = "tracks",
+    weights_dtype: WeightsDtypeOption = "float32",
     pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
         "runs/pretrained"
     ),
@@ -388,6 +404,7 @@ def track(
         detector=detector,
         fl_period=fl_period,
         labels=labels,
+        weights_dtype=weights_dtype,
         pretrained=pretrained,
         out=out,
     )
@@ -409,6 +426,7 @@ def table1(
     seeds: Annotated[str, typer.Option("--seeds", help="Seeds, e.g. '0 1 2' or 0,1,2.")] = "0 1 2",
     cases: Annotated[str, typer.Option("--cases", help="Cases, e.g. '1 2 3'.")] = "1 2 3",
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
+    weights_dtype: WeightsDtypeOption = "float32",
     pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
         "runs/pretrained"
     ),
@@ -421,7 +439,9 @@ def table1(
     """
     from dronefl.experiments.table1 import run_table1
 
-    base = _track_config(case=1, duration=duration, pretrained=pretrained, out=out)
+    base = _track_config(
+        case=1, duration=duration, weights_dtype=weights_dtype, pretrained=pretrained, out=out
+    )
     rows = run_table1(base, cases=_int_list(cases, "--cases"), seeds=_int_list(seeds, "--seeds"))
     typer.echo((out / "table1.md").read_text())
     typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(rows)} episodes)")

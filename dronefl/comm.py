@@ -4,11 +4,16 @@ Every 0.2 s each drone sends its predictions up and receives its control down. B
 little-endian with :mod:`struct` so that the bytes counted are the bytes a radio would carry
 (no framing or transport headers are counted):
 
-``PredictionMessage`` (drone -> cloud), ``9 + 10 n L_f`` bytes for ``n`` predicted targets
+``PredictionMessage`` (drone -> cloud), ``9 + 6 n L_f`` bytes for ``n`` predicted targets
 over a horizon of ``L_f`` steps::
 
     u8 version | u8 drone_id | u32 step | u8 horizon L_f | u16 count = n L_f
-    count x ( u8 target_id | u8 steps_ahead | f32 x (m) | f32 y (m) )
+    count x ( u8 target_id | u8 steps_ahead | i16 x (cm) | i16 y (cm) )
+
+Positions travel as signed centimetres in the world frame: 1 cm resolution (rounding error
+<= 5 mm, far below the metre-scale prediction errors) over +-327.67 m, which holds every
+field of SPEC §2 with its origin at the field's corner; a prediction beyond that range is
+saturated at the edge (the cloud's gate rejects such an outlier anyway).
 
 ``ControlMessage`` (cloud -> drone), 14 bytes::
 
@@ -25,9 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-WIRE_VERSION = 1
+WIRE_VERSION = 2
 _PRED_HEAD = struct.Struct("<BBIBH")
-_PRED_ITEM = struct.Struct("<BBff")
+_PRED_ITEM = struct.Struct("<BBhh")
+#: Largest |coordinate| a prediction message carries, m (i16 centimetres).
+MAX_COORDINATE = 32767 / 100
 _CONTROL = struct.Struct("<BBIff")
 
 
@@ -51,9 +58,10 @@ class PredictionMessage:
         """Pack to bytes (format in the module docstring)."""
         n, horizon = len(self.target_ids), self.positions.shape[1] if len(self.target_ids) else 0
         parts = [_PRED_HEAD.pack(WIRE_VERSION, self.drone_id, self.step, horizon, n * horizon)]
+        centimetres = np.clip(np.rint(np.asarray(self.positions) * 100), -32767, 32767)
         for k, target_id in enumerate(self.target_ids):
             for ahead in range(horizon):
-                x, y = self.positions[k, ahead]
+                x, y = centimetres[k, ahead].astype(int)
                 parts.append(_PRED_ITEM.pack(target_id, ahead + 1, x, y))
         return b"".join(parts)
 
@@ -73,6 +81,7 @@ class PredictionMessage:
         ]
         n = count // horizon if horizon else 0
         positions = np.array([[x, y] for _, _, x, y in items], dtype=float).reshape(n, horizon, 2)
+        positions /= 100.0  # cm -> m
         target_ids = tuple(items[k * horizon][0] for k in range(n))
         return cls(drone_id, step, target_ids, positions)
 

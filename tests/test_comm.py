@@ -3,23 +3,36 @@
 import numpy as np
 import pytest
 
-from dronefl.comm import ByteCounter, ControlMessage, PredictionMessage, WireError
+from dronefl.comm import (
+    MAX_COORDINATE,
+    ByteCounter,
+    ControlMessage,
+    PredictionMessage,
+    WireError,
+)
 
 
 def test_prediction_message_size_and_round_trip():
     positions = np.array([[[12.5, 40.25]], [[80.0, 3.5]], [[1.0, 2.0]]])  # (3 targets, L_f 1, 2)
     message = PredictionMessage(drone_id=2, step=1234, target_ids=(1, 4, 6), positions=positions)
     data = message.encode()
-    assert len(data) == 9 + 10 * 3
+    assert len(data) == 9 + 6 * 3
     back = PredictionMessage.decode(data)
     assert (back.drone_id, back.step, back.target_ids) == (2, 1234, (1, 4, 6))
-    assert np.array_equal(back.positions, positions.astype(np.float32))
+    assert np.array_equal(back.positions, positions)  # whole centimetres travel exactly
+
+
+def test_prediction_positions_are_rounded_to_centimetres_and_saturate():
+    positions = np.array([[[12.3456, -0.004]], [[500.0, -1000.0]]])
+    back = PredictionMessage.decode(PredictionMessage(1, 1, (1, 2), positions).encode())
+    np.testing.assert_allclose(back.positions[0, 0], [12.35, 0.0], atol=1e-12)
+    np.testing.assert_allclose(back.positions[1, 0], [MAX_COORDINATE, -MAX_COORDINATE])
 
 
 def test_prediction_message_with_a_longer_horizon_and_none():
     positions = np.arange(2 * 5 * 2, dtype=float).reshape(2, 5, 2)
     data = PredictionMessage(1, 7, (3, 5), positions).encode()
-    assert len(data) == 9 + 10 * 2 * 5
+    assert len(data) == 9 + 6 * 2 * 5
     assert np.array_equal(PredictionMessage.decode(data).positions, positions)
     empty = PredictionMessage(1, 8, (), np.zeros((0, 1, 2))).encode()
     assert len(empty) == 9 and PredictionMessage.decode(empty).target_ids == ()

@@ -56,7 +56,8 @@ class OfflineConfig:
     """One offline FL experiment: scenario ``case`` (1-3), ``rounds`` global rounds,
     ``seed`` (simulation, model initialisation, training), ``duration`` s of recorded flight,
     window ``stride`` (samples), FedProx ``proximal_mu``, the ``methods`` to train, whether to
-    ``resume`` finished work in ``out``, and progress bars."""
+    ``resume`` finished work in ``out``, progress bars, and the number format of the weights
+    on the wire (``weights_dtype``)."""
 
     case: int
     out: Path
@@ -68,6 +69,7 @@ class OfflineConfig:
     methods: tuple[str, ...] = FIG5_METHODS
     resume: bool = False
     progress: bool = True
+    weights_dtype: str = "float32"
 
     def __post_init__(self) -> None:
         if self.case not in (1, 2, 3):
@@ -88,6 +90,7 @@ class OfflineConfig:
             proximal_mu=self.proximal_mu,
             seed=self.seed,
             resume=self.resume,
+            weights_dtype=self.weights_dtype,
         )
 
 

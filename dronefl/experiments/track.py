@@ -8,11 +8,14 @@ updated from the data recorded so far, labelled by the fused tracks (pseudo-labe
 only as an ablation):
 
 * ``dronefl``: one federated round (FedAvg of the position-invariant AdaIN model) through the
-  Flower apps on the simulation engine;
+  Flower apps on the simulation engine, which stays up for the whole episode (the episode runs
+  as the ServerApp, :func:`dronefl.fl.simulation.run_session`);
 * ``fixed``: the pretrained model, never updated (fixed distributed perception);
 * ``centralized``: the cloud runs the ``large`` model on every drone's raw inputs and retrains it
-  on the pooled data. Until the vision path is used the raw inputs are boxes and odometry (the
-  output says so), and their bytes are counted as if sent every step.
+  on the pooled data. With ``--detector yolo`` the raw inputs are each drone's camera frame
+  (JPEG, :class:`dronefl.perception.uplink.CloudVisionDetector`: the cloud runs the detector
+  on the decoded frame) and its odometry, sent every step; with the projection detector they
+  are the boxes and odometry (the output says so). Their bytes are counted.
 
 All models start from the same crop-field pretraining (:mod:`dronefl.experiments.pretrain`);
 the episode runs in the orchard by default (SPEC §8).
@@ -31,9 +34,9 @@ import torch
 
 from dronefl.comm import ByteCounter, ControlMessage, PredictionMessage
 from dronefl.config import Environment, Scenario, load_scenario
-from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from dronefl.fl.records import FlSettings
-from dronefl.fl.simulation import run_federated
+from dronefl.fl.records import WEIGHT_DTYPES, FlSettings
+from dronefl.fl.server_app import RoundDriver
+from dronefl.fl.simulation import run_session
 from dronefl.io import atomic_savez, atomic_write_json
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
@@ -62,8 +65,9 @@ class TrackConfig:
     ``environment`` where it is deployed; ``detector`` on the drones; ``fl_period`` s between
     model updates; ``labels`` ``tracks`` (fused EKF tracks, the paper) or ``ground_truth``
     (ablation); ``epochs`` local epochs per update; ``stride`` samples between training windows;
-    ``runtime`` of the on-drone predictor; ``pretrained`` folder of the pretrained models;
-    ``animate`` also writes the GIF.
+    ``runtime`` of the on-drone predictor; ``weights_dtype`` number format of the model
+    weights exchanged by DroneFL (``float32`` or ``float16``); ``pretrained`` folder of the
+    pretrained models; ``animate`` also writes the GIF.
     """
 
     case: int
@@ -79,6 +83,7 @@ class TrackConfig:
     stride: int = 2
     past_steps: int = 10
     runtime: str = "onnx"
+    weights_dtype: str = "float32"
     pretrained: Path = Path("runs/pretrained")
     progress: bool = True
     animate: bool = True
@@ -90,6 +95,10 @@ class TrackConfig:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(TRACK_METHODS)}")
         if self.labels not in ("tracks", "ground_truth"):
             raise ValueError(f"--labels: {self.labels!r} is not one of tracks, ground_truth")
+        if self.weights_dtype not in WEIGHT_DTYPES:
+            raise ValueError(
+                f"--weights-dtype: {self.weights_dtype!r} is not one of {', '.join(WEIGHT_DTYPES)}"
+            )
         for name in ("duration", "fl_period"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
@@ -120,6 +129,25 @@ def fusion_config(scenario: Scenario) -> FusionConfig:
 def run_episode(config: TrackConfig) -> dict:
     """Run one closed-loop episode; writes ``metrics.json``, ``episode.npz`` and the plots into
     ``config.out`` and returns the metrics."""
+    if config.method != "dronefl":
+        return _run_episode(config, None)
+    settings = FlSettings(
+        run_dir=str(Path(config.out) / "fl" / "round_01"),
+        out_dir=str(Path(config.out) / "fl" / "global"),
+        method="dronefl",
+        past_steps=config.past_steps,
+        future_steps=1,
+        stride=config.stride,
+        epochs=config.epochs,
+        seed=config.seed,
+        labels="tracks",
+        weights_dtype=config.weights_dtype,
+    )
+    n_drones = len(load_scenario(f"case{config.case}").drones)
+    return run_session(settings, n_drones, lambda driver: _run_episode(config, driver))
+
+
+def _run_episode(config: TrackConfig, driver: RoundDriver | None) -> dict:
     from dronefl.experiments.pretrain import pretrained_state
 
     # One thread: the tiny per-step models are dominated by thread hand-offs otherwise.
@@ -135,10 +163,16 @@ def run_episode(config: TrackConfig) -> dict:
     model = build_model(model_config)
     model.load_state_dict(state)
     predictor = TrajectoryPredictor(model, runtime=config.runtime)
-    learner = _learner(config, out, state)
+    learner = _learner(config, out, state, driver)
 
     world = World(scenario, config.environment, config.seed)
-    detector = make_detector(config.detector, world)
+    cloud_vision = config.method == "centralized" and config.detector == "yolo"
+    if cloud_vision:
+        from dronefl.perception.uplink import CloudVisionDetector
+
+        detector = CloudVisionDetector.for_world(world)
+    else:
+        detector = make_detector(config.detector, world)
     fuser = Fuser(scenario.target_ids, scenario.drone_ids, fusion_config(scenario))
     planner = DroneFLPlanner.from_scenario(scenario)
     counter = ByteCounter()
@@ -166,19 +200,25 @@ def run_episode(config: TrackConfig) -> dict:
                 detections = detector.detect(view)
                 record.append(odometry, detections)
                 if config.method == "centralized":
-                    raw = _raw_inputs(record.drone_id, k, odometry, detections)
-                    counter.add(record.drone_id, "up", "raw_inputs", len(raw))
+                    boxes = () if cloud_vision else detections  # in the cloud already
+                    raw = _raw_inputs(record.drone_id, k, odometry, boxes)
+                    kind = "odometry" if cloud_vision else "raw_inputs"
+                    counter.add(record.drone_id, "up", kind, len(raw))
+                    if cloud_vision:
+                        counter.add(record.drone_id, "up", "frames", detector.last_frame_bytes)
                 window = record.window(config.past_steps)
                 if window is None:
                     continue
                 predicted = predictor.predict(*window)[:, 0]  # (n_assigned, 2) m
                 assigned = record.target_ids[record.assigned]
                 seen = np.isfinite(predicted).all(axis=1)
-                ids = tuple(int(t) for t in assigned[seen])
-                if config.method != "centralized":
-                    message = PredictionMessage(record.drone_id, k, ids, predicted[seen][:, None])
-                    counter.add(record.drone_id, "up", "predictions", len(message.encode()))
-                for target_id, position in zip(ids, predicted[seen], strict=True):
+                ids, positions = tuple(int(t) for t in assigned[seen]), predicted[seen]
+                if config.method != "centralized":  # the cloud fuses what the radio carried
+                    data = PredictionMessage(record.drone_id, k, ids, positions[:, None]).encode()
+                    counter.add(record.drone_id, "up", "predictions", len(data))
+                    received = PredictionMessage.decode(data)
+                    ids, positions = received.target_ids, received.positions[:, 0]
+                for target_id, position in zip(ids, positions, strict=True):
                     log.prediction[k, i, column[target_id]] = position
                     measurements.append(PositionMeasurement(record.drone_id, target_id, position))
             tracks = fuser.update(world.t + world.dt, measurements)
@@ -189,21 +229,24 @@ def run_episode(config: TrackConfig) -> dict:
             plan = planner.plan(world.drone_states(), fuser.forecast(world.dt))
             planner_seconds += time.perf_counter() - t0
             log.cost[k] = plan.cost.total
-            commands = np.array([plan.accelerations[d] for d in scenario.drone_ids])
-            for d, u in zip(scenario.drone_ids, commands, strict=True):
-                control = ControlMessage(d, k, (float(u[0]), float(u[1])))
-                counter.add(d, "down", "control", len(control.encode()))
-            world.step(commands)
+            commands = []
+            for d in scenario.drone_ids:  # each drone flies what it received
+                ax, ay = plan.accelerations[d]
+                data = ControlMessage(d, k, (float(ax), float(ay))).encode()
+                counter.add(d, "down", "control", len(data))
+                commands.append(ControlMessage.decode(data).acceleration)
+            world.step(np.array(commands))
             if learner is not None and (k + 1) % fl_every == 0 and k + 1 < n_steps:
                 t0 = time.perf_counter()
                 labels = _labels(config.labels, log, k + 1)
                 new_state, entry = learner.update(records, labels, len(fl_rounds) + 1)
                 predictor.load_state(new_state)
-                fl_seconds += time.perf_counter() - t0
+                seconds = time.perf_counter() - t0
+                fl_seconds += seconds
                 for d, n_bytes in entry.pop("bytes_per_drone", {}).items():
                     for direction, value in n_bytes.items():
                         counter.add(int(d), direction, "weights", value)
-                fl_rounds.append({"t": world.t, **entry})
+                fl_rounds.append({"t": world.t, "seconds": seconds, **entry})
                 log.fl_steps.append(k + 1)
             advance()
         _record_truth(log, n_steps, world)
@@ -216,11 +259,7 @@ def run_episode(config: TrackConfig) -> dict:
             "seed": config.seed,
             "environment": config.environment,
             "detector": config.detector,
-            "centralized_inputs": (
-                "boxes and odometry of every drone (no images: the projection detector is in use)"
-                if config.method == "centralized" and config.detector == "projection"
-                else None
-            ),
+            "centralized_inputs": _centralized_inputs(config, detector),
             "labels": config.labels,
             "sim_seconds": n_steps * scenario.dt,
             "wall_seconds": wall,
@@ -299,8 +338,19 @@ def _record_truth(log: EpisodeLog, k: int, world: World) -> None:
     log.drone_velocity[k] = world.drones.velocity
 
 
+def _centralized_inputs(config: TrackConfig, detector: object) -> str | None:
+    """What the centralized baseline's drones send, in words (None for the other methods)."""
+    if config.method != "centralized":
+        return None
+    if config.detector == "yolo":
+        quality = getattr(detector, "quality", None)
+        return f"JPEG camera frames (quality {quality}) and odometry of every drone"
+    return "boxes and odometry of every drone (no images: the projection detector is in use)"
+
+
 def _raw_inputs(drone_id: int, step: int, odometry, detections) -> bytes:
-    """What a drone of the centralized baseline sends each step: its odometry and boxes."""
+    """What a drone of the centralized baseline sends each step besides a camera frame: its
+    odometry and the boxes it detected (none when the cloud detects on the frames)."""
     payload = _RAW_HEAD.pack(drone_id, step, *odometry.vector.astype(np.float32))
     return payload + b"".join(_RAW_BOX.pack(d.target_id, *d.box) for d in detections)
 
@@ -318,41 +368,28 @@ def _save_log(path: Path, log: EpisodeLog) -> None:
 
 
 class FederatedLearner:
-    """One Flower round (DroneFL) per update, continuing from the current global model."""
+    """One Flower round (DroneFL) per update through the episode's round ``driver``, continuing
+    from the current global model; each round's data (every drone's log so far and the fused
+    tracks) is written to ``<out>/fl/round_<k>/`` for the drones to train on, and the global
+    checkpoint to ``<out>/fl/global/``."""
 
-    def __init__(self, config: TrackConfig, out: Path, state: dict[str, torch.Tensor]) -> None:
-        self.config = config
-        self.global_dir = out / "fl" / "global"
-        shutil.rmtree(out / "fl", ignore_errors=True)
-        save_checkpoint(
-            self.global_dir / "checkpoint.npz",
-            self.global_dir / "history.json",
-            Checkpoint("dronefl", 0, state, []),
-        )
+    def __init__(self, out: Path, state: dict[str, torch.Tensor], driver: RoundDriver) -> None:
+        self.folder = out / "fl"
+        shutil.rmtree(self.folder, ignore_errors=True)
+        self.state = state
+        self.driver = driver
 
     def update(
         self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
     ) -> tuple[dict[str, torch.Tensor], dict]:
-        data = self.global_dir.parent / f"round_{server_round:02d}"
+        data = self.folder / f"round_{server_round:02d}"
         _write_round_data(data, records, labels)
-        settings = FlSettings(
-            run_dir=str(data),
-            out_dir=str(self.global_dir),
-            method="dronefl",
-            rounds=server_round,
-            past_steps=self.config.past_steps,
-            future_steps=1,
-            stride=self.config.stride,
-            epochs=self.config.epochs,
-            seed=self.config.seed,
-            resume=True,
-            labels="tracks",
-        )
-        history = run_federated(settings)
-        checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, "dronefl")
-        entry = history[-1]
+        self.state = self.driver.play(self.state, server_round, run_dir=str(data))
+        entry = self.driver.history[-1]
+        if entry["round"] != server_round:
+            raise RuntimeError(f"federated round {server_round} did not finish")
         bytes_per_drone = _bytes_per_drone(entry.get("bytes", {}), records)
-        return checkpoint.state, {
+        return self.state, {
             "round": server_round,
             "train_loss": entry.get("train_loss"),
             "pseudo_label_test_mse": entry.get("mean_test_mse"),
@@ -384,9 +421,11 @@ class CentralLearner:
         return self.model.state_dict(), {"round": server_round, "train_loss": stats.loss}
 
 
-def _learner(config: TrackConfig, out: Path, state: dict):
+def _learner(config: TrackConfig, out: Path, state: dict, driver: RoundDriver | None):
     if config.method == "dronefl":
-        return FederatedLearner(config, out, state)
+        if driver is None:
+            raise ValueError("the dronefl method needs a federated round driver")
+        return FederatedLearner(out, state, driver)
     if config.method == "centralized":
         return CentralLearner(config, state)
     return None

@@ -1,6 +1,7 @@
 """The drone side of federated learning: a Flower ``ClientApp`` (Message API).
 
-On ``train`` a drone loads the global weights, trains E epochs on its own windows
+On ``train`` a drone loads the global weights (one flat vector, see
+:class:`dronefl.fl.records.WeightLayout`), trains E epochs on its own windows
 (:func:`dronefl.models.train.train_local`, with FedProx's proximal term when the strategy sent
 ``proximal-mu``) and replies with its weights and sample count. On ``evaluate`` it reports the
 test MSE of the global model on its held-out (later) windows. FedPer drones keep the output
@@ -14,6 +15,7 @@ Which drone a node is: ``node_config["drone-id"]`` in a deployment, else the
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -64,10 +66,12 @@ def build_client_app(defaults: dict | None = None) -> ClientApp:
 def handle_train(msg: Message, context: Context, settings: FlSettings) -> Message:
     """One round of local training on this drone."""
     torch.set_num_threads(1)
+    instructions = TrainInstructions.from_config(msg.content["config"])
+    settings = _for_round(settings, instructions)
     drone_id = _drone_id(context, settings)
     train_set, _ = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
-    instructions = TrainInstructions.from_config(msg.content["config"])
-    global_state = to_state(msg.content[ARRAYS_KEY])
+    layout = settings.layout
+    global_state = layout.unpack(msg.content[ARRAYS_KEY])
     model = _local_model(settings, global_state, context, drone_id, instructions.server_round)
     regularizer = None
     if instructions.proximal_mu > 0:
@@ -80,18 +84,19 @@ def handle_train(msg: Message, context: Context, settings: FlSettings) -> Messag
         _keep_personal(context, settings, drone_id, head)
         state = {k: v for k, v in state.items() if k in global_state}
     report = ClientReport(drone_id, stats.num_examples, stats.loss)
-    content = RecordDict({ARRAYS_KEY: to_arrays(state), METRICS_KEY: report.to_metrics()})
+    content = RecordDict({ARRAYS_KEY: layout.pack(state), METRICS_KEY: report.to_metrics()})
     return Message(content=content, reply_to=msg)
 
 
 def handle_evaluate(msg: Message, context: Context, settings: FlSettings) -> Message:
     """Test MSE (m^2) of the global model (with this drone's personal head, for FedPer)."""
     torch.set_num_threads(1)
+    instructions = TrainInstructions.from_config(msg.content["config"])
+    settings = _for_round(settings, instructions)
     drone_id = _drone_id(context, settings)
     _, test_set = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
-    server_round = TrainInstructions.from_config(msg.content["config"]).server_round
-    global_state = to_state(msg.content[ARRAYS_KEY])
-    model = _local_model(settings, global_state, context, drone_id, server_round)
+    global_state = settings.layout.unpack(msg.content[ARRAYS_KEY])
+    model = _local_model(settings, global_state, context, drone_id, instructions.server_round)
     report = ClientReport(drone_id, len(test_set), evaluate(model, test_set))
     return Message(content=RecordDict({METRICS_KEY: report.to_metrics()}), reply_to=msg)
 
@@ -144,6 +149,13 @@ def _personal_path(settings: FlSettings, drone_id: int) -> Path:
 
 def _settings(context: Context, defaults: dict | None) -> FlSettings:
     return FlSettings.from_run_config({**(defaults or {}), **dict(context.run_config)})
+
+
+def _for_round(settings: FlSettings, instructions: TrainInstructions) -> FlSettings:
+    """The settings with the round's data folder, when the cloud named one."""
+    if instructions.run_dir is None:
+        return settings
+    return replace(settings, run_dir=instructions.run_dir)
 
 
 def _drone_id(context: Context, settings: FlSettings) -> int:

@@ -3,7 +3,8 @@
 Everything that crosses the cloud-drone link or the run configuration is converted here:
 
 * :class:`FlSettings` <-> the run config (``UserConfig``: flat str -> scalar),
-* model state dicts <-> ``ArrayRecord``,
+* model state dicts <-> ``ArrayRecord``: named (:func:`to_arrays`, for local storage) or, on
+  the wire, one flat vector in fp32 or fp16 (:class:`WeightLayout`),
 * :class:`TrainInstructions` <- the ``ConfigRecord`` a strategy sends,
 * :class:`ClientReport` <-> the ``MetricRecord`` a drone sends back.
 """
@@ -14,11 +15,12 @@ import math
 from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 
+import numpy as np
 import torch
-from flwr.app import ArrayRecord, ConfigRecord, MetricRecord
+from flwr.app import Array, ArrayRecord, ConfigRecord, MetricRecord
 
 from dronefl.fl.methods import METHODS, Method
-from dronefl.models.model import PredictorConfig
+from dronefl.models.model import PredictorConfig, TrajectoryTransformer, build_model
 from dronefl.models.train import TrainConfig
 from dronefl.models.windows import WindowSpec
 
@@ -30,7 +32,11 @@ ROUND_KEY = "server-round"
 PROXIMAL_MU_KEY = "proximal-mu"
 PARTITION_KEY = "partition-id"
 DRONE_KEY = "drone-id"
+RUN_DIR_KEY = "run-dir"
+WEIGHTS_KEY = "weights"
 LABEL_SOURCES = ("ground_truth", "tracks")
+#: Number formats the model weights may travel in (``--weights-dtype``).
+WEIGHT_DTYPES = ("float32", "float16")
 
 
 class SettingsError(ValueError):
@@ -48,7 +54,8 @@ class FlSettings:
     ``batch_size`` local training; ``proximal_mu`` FedProx's mu (used by ``fedprox`` only);
     ``seed`` model initialisation and training seeds; ``resume`` continue from the checkpoint;
     ``labels`` ``ground_truth`` (``ground_truth.npz``) or ``tracks`` (the cloud's fused tracks in
-    ``tracks.npz``: pseudo-labels, as in the closed loop).
+    ``tracks.npz``: pseudo-labels, as in the closed loop); ``weights_dtype`` the number format
+    of the weights on the wire (``float16`` halves the bytes; training stays in fp32).
     """
 
     run_dir: str
@@ -65,10 +72,15 @@ class FlSettings:
     seed: int = 0
     resume: bool = False
     labels: str = "ground_truth"
+    weights_dtype: str = "float32"
 
     def __post_init__(self) -> None:
         if self.labels not in LABEL_SOURCES:
             raise SettingsError(f"labels: {self.labels!r} is not one of {LABEL_SOURCES}")
+        if self.weights_dtype not in WEIGHT_DTYPES:
+            raise SettingsError(
+                f"weights-dtype: {self.weights_dtype!r} is not one of {', '.join(WEIGHT_DTYPES)}"
+            )
         if self.method not in METHODS:
             raise SettingsError(f"method: unknown {self.method!r}; choose one of {list(METHODS)}")
         for name in ("rounds", "past_steps", "future_steps", "stride", "epochs", "batch_size"):
@@ -84,6 +96,13 @@ class FlSettings:
     @property
     def model(self) -> PredictorConfig:
         return self.method_spec.predictor(self.past_steps, self.future_steps)
+
+    @property
+    def layout(self) -> WeightLayout:
+        """The wire layout of the global weights (FedPer's personal head never travels)."""
+        return WeightLayout.of(
+            global_part(build_model(self.model).state_dict(), self), self.weights_dtype
+        )
 
     @property
     def windows(self) -> WindowSpec:
@@ -132,8 +151,16 @@ class FlSettings:
         return cls(**values)
 
 
+def global_part(state: dict[str, torch.Tensor], settings: FlSettings) -> dict[str, torch.Tensor]:
+    """The weights of ``state`` that are averaged: all but FedPer's personal output head."""
+    if not settings.method_spec.personal:
+        return state
+    return {k: v for k, v in state.items() if not k.startswith(TrajectoryTransformer.HEAD)}
+
+
 def to_arrays(state: dict[str, torch.Tensor]) -> ArrayRecord:
-    """A model state dict (or part of one) as an ``ArrayRecord``."""
+    """A model state dict (or part of one) as an ``ArrayRecord`` of named tensors (for a
+    drone's own storage; the wire format is :class:`WeightLayout`)."""
     return ArrayRecord({k: v.detach().cpu().contiguous() for k, v in state.items()})
 
 
@@ -143,18 +170,73 @@ def to_state(arrays: ArrayRecord) -> dict[str, torch.Tensor]:
 
 
 @dataclass(frozen=True)
+class WeightLayout:
+    """How model weights travel between cloud and drones: one flat vector.
+
+    Both ends build the same model, so names and shapes need not be sent: the weights go as
+    ``ArrayRecord({"weights": w})`` with ``w`` the concatenation of the tensors in ``names``
+    order, cast to ``dtype``. One array instead of one per tensor saves Flower's per-array
+    framing (a ~170 B header and content hash per tensor: 24 kB for the 69 tensors of the
+    DroneFL model, as much as half its fp32 weights). ``float16`` halves the payload; the
+    receiver casts back to fp32 (relative rounding error <= 2^-11).
+    """
+
+    names: tuple[str, ...]
+    shapes: tuple[tuple[int, ...], ...]
+    dtype: str = "float32"
+
+    def __post_init__(self) -> None:
+        if self.dtype not in WEIGHT_DTYPES:
+            raise SettingsError(f"weights-dtype: {self.dtype!r} is not one of {WEIGHT_DTYPES}")
+
+    @classmethod
+    def of(cls, state: dict[str, torch.Tensor], dtype: str = "float32") -> WeightLayout:
+        """The layout of ``state`` (e.g. a freshly built model's state dict)."""
+        return cls(tuple(state), tuple(tuple(v.shape) for v in state.values()), dtype)
+
+    @property
+    def size(self) -> int:
+        """Number of weights."""
+        return sum(math.prod(shape) for shape in self.shapes)
+
+    def pack(self, state: dict[str, torch.Tensor]) -> ArrayRecord:
+        """``state`` (same names and shapes) as one flat array of ``dtype``."""
+        if set(state) != set(self.names):
+            raise SettingsError("weights: the state does not hold the layout's tensors")
+        flat = torch.cat([state[k].detach().cpu().reshape(-1).float() for k in self.names])
+        return ArrayRecord({WEIGHTS_KEY: Array(flat.numpy().astype(self.dtype))})
+
+    def unpack(self, arrays: ArrayRecord) -> dict[str, torch.Tensor]:
+        """The fp32 state dict in an ``ArrayRecord`` made by :meth:`pack`."""
+        if set(arrays.keys()) != {WEIGHTS_KEY}:
+            raise SettingsError(f"weights: expected one array {WEIGHTS_KEY!r}")
+        flat = arrays[WEIGHTS_KEY].numpy()
+        if flat.shape != (self.size,):
+            raise SettingsError(f"weights: expected {self.size} values, got shape {flat.shape}")
+        values = torch.from_numpy(flat.astype(np.float32))
+        parts = torch.split(values, [math.prod(shape) for shape in self.shapes])
+        return {
+            name: part.reshape(shape).clone()
+            for name, part, shape in zip(self.names, parts, self.shapes, strict=True)
+        }
+
+
+@dataclass(frozen=True)
 class TrainInstructions:
-    """What the cloud asks of a drone for one round: the global ``server_round`` and FedProx's
-    ``proximal_mu`` (0 for every other strategy)."""
+    """What the cloud asks of a drone for one round: the global ``server_round``, FedProx's
+    ``proximal_mu`` (0 for every other strategy) and, in the closed loop, the ``run_dir``
+    holding the data recorded so far (else the run config's)."""
 
     server_round: int
     proximal_mu: float = 0.0
+    run_dir: str | None = None
 
     @classmethod
     def from_config(cls, config: ConfigRecord) -> TrainInstructions:
         if ROUND_KEY not in config:
             raise SettingsError(f"train config: missing {ROUND_KEY!r}")
-        return cls(int(config[ROUND_KEY]), float(config.get(PROXIMAL_MU_KEY, 0.0)))
+        run_dir = str(config[RUN_DIR_KEY]) if RUN_DIR_KEY in config else None
+        return cls(int(config[ROUND_KEY]), float(config.get(PROXIMAL_MU_KEY, 0.0)), run_dir)
 
 
 @dataclass(frozen=True)

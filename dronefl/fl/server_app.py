@@ -1,10 +1,13 @@
 """The cloud side of federated learning: a Flower ``ServerApp`` (Message API).
 
 :func:`run_server` builds the method's initial global model (seeded; resumed from
-``checkpoint.npz`` with ``resume``), wraps the Grid in a byte counter, and hands the round
-loop to the method's strategy. After every round it records the round (per-drone test MSE
-and their mean, training losses, rejected updates, bytes down/up) and writes the checkpoint
-and history atomically. ``app`` is the deployable object (``dronefl.fl.server_app:app``).
+``checkpoint.npz`` with ``resume``) and plays the rounds with a :class:`RoundDriver`: it wraps
+the Grid in a byte counter, hands the round loop to the method's strategy, and after every
+round records it (per-drone test MSE and their mean, training losses, rejected updates, bytes
+down/up) and writes the checkpoint and history atomically. The closed loop keeps one driver
+for a whole episode and plays one round at a time on new data
+(:func:`dronefl.fl.simulation.run_session`). ``app`` is the deployable object
+(``dronefl.fl.server_app:app``).
 """
 
 from __future__ import annotations
@@ -12,14 +15,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from flwr.app import ArrayRecord, Context, MetricRecord
+import torch
+from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord
 from flwr.serverapp import Grid, ServerApp
 
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from dronefl.fl.comm import CountingGrid
-from dronefl.fl.records import FlSettings, SettingsError, to_arrays, to_state
+from dronefl.fl.comm import CountingGrid, Traffic
+from dronefl.fl.records import RUN_DIR_KEY, FlSettings, SettingsError, global_part
 from dronefl.fl.strategies import make_strategy
-from dronefl.models.model import TrajectoryTransformer, build_model
+from dronefl.models.model import build_model
 
 #: Called with each finished round's history entry (e.g. to advance a progress bar).
 RoundCallback = Callable[[dict], None]
@@ -47,12 +51,9 @@ def num_drones(run_dir: str | Path) -> int:
     return n
 
 
-def initial_state(settings: FlSettings) -> dict:
+def initial_state(settings: FlSettings) -> dict[str, torch.Tensor]:
     """The seeded initial global weights (without the personal head for FedPer)."""
-    state = build_model(settings.model, seed=settings.seed).state_dict()
-    if settings.method_spec.personal:
-        state = {k: v for k, v in state.items() if not k.startswith(TrajectoryTransformer.HEAD)}
-    return state
+    return global_part(build_model(settings.model, seed=settings.seed).state_dict(), settings)
 
 
 def run_server(
@@ -68,36 +69,85 @@ def run_server(
     remaining = settings.rounds - offset
     if remaining <= 0:
         return history
-    strategy = make_strategy(
-        settings.method_spec, num_drones(settings.run_dir), settings.proximal_mu, offset
-    )
-    counting = CountingGrid(grid)
+    driver = RoundDriver(grid, settings, num_drones(settings.run_dir), history)
+    driver.play(state, offset + 1, remaining, on_round=on_round)
+    return driver.history
 
-    def end_of_round(local_round: int, arrays: ArrayRecord) -> MetricRecord | None:
-        if local_round == 0:  # Flower also calls this before the first round
-            return None
-        server_round = local_round + offset
-        log = strategy.logs[server_round]
-        entry = {
-            "round": server_round,
-            "mean_test_mse": log.mean_test_mse,
-            "test_mse": {str(k): v for k, v in sorted(log.test_mse.items())},
-            "train_loss": {str(k): v for k, v in sorted(log.train_loss.items())},
-            "rejected": log.rejected,
-            "bytes": counting.traffic.of_round(server_round),
-        }
-        history.append(entry)
-        save_checkpoint(
-            settings.checkpoint_path,
-            settings.history_path,
-            Checkpoint(settings.method, server_round, to_state(arrays), history),
+
+class RoundDriver:
+    """Plays global rounds of ``settings.method`` with ``n_drones`` drones through ``grid``.
+
+    Each round's entry is appended to :attr:`history` and the checkpoint and history are
+    written atomically to ``settings.out_dir``. Weights travel as
+    :meth:`FlSettings.layout` says (one flat fp32 or fp16 vector); :attr:`traffic` holds the
+    bytes of every message, by round and message type.
+    """
+
+    def __init__(
+        self, grid: Grid, settings: FlSettings, n_drones: int, history: list[dict] | None = None
+    ) -> None:
+        self.settings = settings
+        self.n_drones = n_drones
+        self.history: list[dict] = list(history or [])
+        self.layout = settings.layout
+        self._grid = CountingGrid(grid)
+
+    @property
+    def traffic(self) -> Traffic:
+        """Bytes of every message sent and received so far."""
+        return self._grid.traffic
+
+    def play(
+        self,
+        state: dict[str, torch.Tensor],
+        first_round: int,
+        n_rounds: int = 1,
+        run_dir: str | None = None,
+        on_round: RoundCallback | None = None,
+    ) -> dict[str, torch.Tensor]:
+        """Play global rounds ``first_round .. first_round + n_rounds - 1`` from the global
+        weights ``state``; the drones train on ``run_dir`` when given (else the run config's).
+        Returns the new global weights (fp32)."""
+        settings = self.settings
+        strategy = make_strategy(
+            settings.method_spec, self.n_drones, settings.proximal_mu, first_round - 1
         )
-        if on_round is not None:
-            on_round(entry)
-        return None
+        config = ConfigRecord({RUN_DIR_KEY: run_dir} if run_dir else {})
+        latest = dict(state)
 
-    strategy.start(counting, to_arrays(state), num_rounds=remaining, evaluate_fn=end_of_round)
-    return history
+        def end_of_round(local_round: int, arrays: ArrayRecord) -> MetricRecord | None:
+            if local_round == 0:  # Flower also calls this before the first round
+                return None
+            server_round = local_round + first_round - 1
+            log = strategy.logs[server_round]
+            entry = {
+                "round": server_round,
+                "mean_test_mse": log.mean_test_mse,
+                "test_mse": {str(k): v for k, v in sorted(log.test_mse.items())},
+                "train_loss": {str(k): v for k, v in sorted(log.train_loss.items())},
+                "rejected": log.rejected,
+                "bytes": self.traffic.of_round(server_round),
+            }
+            self.history.append(entry)
+            latest.update(self.layout.unpack(arrays))
+            save_checkpoint(
+                settings.checkpoint_path,
+                settings.history_path,
+                Checkpoint(settings.method, server_round, dict(latest), self.history),
+            )
+            if on_round is not None:
+                on_round(entry)
+            return None
+
+        strategy.start(
+            self._grid,
+            self.layout.pack(state),
+            num_rounds=n_rounds,
+            train_config=config,
+            evaluate_config=ConfigRecord(dict(config)),
+            evaluate_fn=end_of_round,
+        )
+        return latest
 
 
 app = build_server_app()

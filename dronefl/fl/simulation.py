@@ -1,4 +1,9 @@
-"""Run one federated method on Flower's simulation engine (one Ray start per run).
+"""Federated learning on Flower's simulation engine.
+
+* :func:`run_federated` trains one method for a number of rounds (one engine start per call);
+* :func:`run_session` keeps one engine up while ``body`` runs as the ServerApp, playing a
+  round whenever it likes (the closed loop: one round per 100 s of an episode, each on the data
+  recorded so far), so the engine's start-up (Ray, ~5 s) is paid once per episode.
 
 The same ServerApp/ClientApp run in a deployment (SuperLink + one SuperNode per drone with
 ``--node-config "drone-id=<id>"``, run config = :meth:`FlSettings.to_run_config`).
@@ -8,13 +13,20 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from typing import TypeVar
 
+from flwr.app import Context
+from flwr.serverapp import Grid, ServerApp
 from flwr.simulation import run_simulation
 
 from dronefl.fl.checkpoint import CheckpointError, load_checkpoint
 from dronefl.fl.client_app import build_client_app
 from dronefl.fl.records import FlSettings
-from dronefl.fl.server_app import RoundCallback, build_server_app, num_drones
+from dronefl.fl.server_app import RoundCallback, RoundDriver, build_server_app, num_drones
+
+T = TypeVar("T")
 
 
 #: Ray resources: two workers, one CPU each (the two drones' trainings run side by side),
@@ -37,24 +49,14 @@ def run_federated(
 ) -> list[dict]:
     """Train ``settings.method`` for ``settings.rounds`` rounds on the simulation engine and
     return the round history (also in ``settings.history_path``)."""
-    os.environ.setdefault("FLWR_TELEMETRY_ENABLED", "0")
-    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
-    os.environ.setdefault("RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO", "0")
     config = settings.to_run_config()
-    flwr_logger = logging.getLogger("flwr")
-    level = flwr_logger.level
-    # ERROR: run_simulation warns on every call that `flwr run` is preferred; failed rounds are
-    # reported by the strategy and by the checks below.
-    flwr_logger.setLevel(logging.ERROR)
-    try:
+    with _quiet_flower():
         run_simulation(
             server_app=build_server_app(config, on_round),
             client_app=build_client_app(config),
             num_supernodes=num_drones(settings.run_dir),
             backend_config=backend_config(num_cpus),
         )
-    finally:
-        flwr_logger.setLevel(level)
     try:
         checkpoint = load_checkpoint(
             settings.checkpoint_path, settings.history_path, settings.method
@@ -67,3 +69,52 @@ def run_federated(
             f"of {settings.rounds}; see the log above (resume with --resume)"
         )
     return checkpoint.history
+
+
+def run_session(
+    settings: FlSettings, n_drones: int, body: Callable[[RoundDriver], T], num_cpus: int = 2
+) -> T:
+    """Start the simulation engine with ``n_drones`` SuperNodes, run ``body(driver)`` as the
+    ServerApp and return its result; ``driver.play(state, round, run_dir=...)`` plays a round
+    on the drones' data in ``run_dir``. An exception in ``body`` is raised here once the engine
+    has stopped."""
+    outcome: dict[str, T] = {}
+    failure: list[BaseException] = []
+    app = ServerApp()
+
+    @app.main()
+    def main(grid: Grid, context: Context) -> None:
+        try:
+            outcome["result"] = body(RoundDriver(grid, settings, n_drones))
+        except BaseException as exc:  # noqa: BLE001 - re-raised in the caller's thread
+            failure.append(exc)
+
+    with _quiet_flower():
+        run_simulation(
+            server_app=app,
+            client_app=build_client_app(settings.to_run_config()),
+            num_supernodes=n_drones,
+            backend_config=backend_config(num_cpus),
+        )
+    if failure:
+        raise failure[0]
+    if "result" not in outcome:
+        raise RuntimeError("the federated session ended without a result; see the log above")
+    return outcome["result"]
+
+
+@contextmanager
+def _quiet_flower() -> Iterator[None]:
+    """No telemetry or Ray log deduplication, and Flower's logger at ERROR: ``run_simulation``
+    warns on every call that ``flwr run`` is preferred; failed rounds are reported by the
+    strategy and by the callers' checks."""
+    os.environ.setdefault("FLWR_TELEMETRY_ENABLED", "0")
+    os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+    os.environ.setdefault("RAY_ACCEL_ENV_VAR_OVERRIDE_ON_ZERO", "0")
+    flwr_logger = logging.getLogger("flwr")
+    level = flwr_logger.level
+    flwr_logger.setLevel(logging.ERROR)
+    try:
+        yield
+    finally:
+        flwr_logger.setLevel(level)

@@ -3,9 +3,10 @@
 Flower's strategy owns the round loop (``Strategy.start``); DroneFL only overrides hooks:
 
 * ``configure_train`` / ``configure_evaluate`` number rounds globally, so that a resumed run
-  continues at round ``k + 1`` (``round_offset``), and remember which weights were sent;
+  continues at round ``k + 1`` (``round_offset``), and remember the names and shapes of the
+  arrays sent;
 * ``aggregate_train`` first screens every reply (:func:`screen_reply`): a drone that failed,
-  sent no weights, other keys, non-finite or absurd weights is left out of that round and
+  sent no weights, other names or shapes, non-finite or absurd weights is left out of that round and
   logged, and the rest are averaged as usual, weighted by sample count:
   ``w_g = sum_i n_i w_i / sum_i n_i``;
 * ``aggregate_evaluate`` keeps every drone's test MSE and their plain mean (the paper's
@@ -51,16 +52,19 @@ class RoundLog:
         return float(np.mean(list(self.test_mse.values()))) if self.test_mse else math.nan
 
 
-def screen_reply(reply: Message, expected_keys: set[str]) -> str | None:
-    """Why a training reply must be left out of aggregation, or None if it is usable."""
+def screen_reply(reply: Message, expected: dict[str, tuple[int, ...]]) -> str | None:
+    """Why a training reply must be left out of aggregation, or None if it is usable;
+    ``expected`` maps the names of the arrays sent to their shapes."""
     if reply.has_error():
         return f"error ({reply.error.reason})"
     content = reply.content
     if len(content.array_records) != 1 or len(content.metric_records) != 1:
         return "reply must hold one ArrayRecord and one MetricRecord"
     arrays = next(iter(content.array_records.values()))
-    if set(arrays.keys()) != expected_keys:
+    if set(arrays.keys()) != set(expected):
         return "weights with unexpected keys"
+    if any(tuple(arrays[k].shape) != shape for k, shape in expected.items()):
+        return "weights with unexpected shapes"
     try:
         report = ClientReport.from_metrics(next(iter(content.metric_records.values())))
     except (SettingsError, TypeError, ValueError) as exc:
@@ -89,12 +93,12 @@ class RobustRounds:
 
     round_offset: int
     logs: dict[int, RoundLog]
-    _sent_keys: set[str]
+    _sent: dict[str, tuple[int, ...]]
 
     def _init_robust(self, round_offset: int) -> None:
         self.round_offset = round_offset
         self.logs = {}
-        self._sent_keys = set()
+        self._sent = {}
 
     def _log(self, server_round: int) -> RoundLog:
         r = server_round + self.round_offset
@@ -103,7 +107,7 @@ class RobustRounds:
     def configure_train(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
-        self._sent_keys = set(arrays.keys())
+        self._sent = {k: tuple(v.shape) for k, v in arrays.items()}
         return super().configure_train(server_round + self.round_offset, arrays, config, grid)  # type: ignore[misc]
 
     def configure_evaluate(
@@ -117,7 +121,7 @@ class RobustRounds:
         record = self._log(server_round)
         valid = []
         for reply in replies:
-            reason = screen_reply(reply, self._sent_keys)
+            reason = screen_reply(reply, self._sent)
             if reason is None:
                 valid.append(reply)
                 report = ClientReport.from_metrics(

@@ -92,6 +92,9 @@ def _timeseries(scenario, log, path: Path, method: str) -> None:
 
 
 def _running_mean(values: np.ndarray, window: int) -> np.ndarray:
+    """Mean of the finite values in a centred window of ``window`` samples (shorter series:
+    the window shrinks to the series)."""
+    window = max(1, min(window, len(values)))
     ok = np.isfinite(values)
     filled = np.where(ok, values, 0.0)
     sums = np.convolve(filled, np.ones(window), mode="same")

@@ -134,3 +134,29 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
         assert (tmp_path / name).stat().st_size > 0
     again = run_episode(config)
     assert again["prediction_error"] == metrics["prediction_error"]
+
+
+def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, tmp_path):
+    # Prepare: an (untrained) large cloud model in the cache; accuracy is not under test.
+    settings = pretrain_settings(1, "centralized", quick_pretrained)
+    if not settings.checkpoint_path.is_file():
+        model = build_model(predictor_config("large", 10, 1), seed=0)
+        save_checkpoint(
+            settings.checkpoint_path,
+            settings.history_path,
+            Checkpoint("centralized", settings.rounds, model.state_dict(), []),
+        )
+    config = TrackConfig(case=1, method="centralized", detector="yolo", seed=0, duration=2.0,
+                         environment="crop_field", runtime="torch", pretrained=quick_pretrained,
+                         out=tmp_path, progress=False, animate=False)  # fmt: skip
+    # Execute: 10 steps, every drone's frame rendered, JPEG-encoded, decoded and detected.
+    metrics = run_episode(config)
+    # Assert: per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry; no
+    # predictions travel (the cloud predicts), the controls come down.
+    assert "JPEG" in metrics["centralized_inputs"]
+    for rates in metrics["communication_kb_per_s"]["drones"].values():
+        assert 20 * 5 < rates["up:frames"] < 200 * 5  # KB/s at 5 Hz
+        assert rates["up:odometry"] == pytest.approx(53 * 5 / 1000)
+        assert rates["down:control"] == pytest.approx(14 * 5 / 1000)
+        assert "up:predictions" not in rates
+    assert metrics["prediction_coverage"] > 0.0

@@ -11,6 +11,7 @@ from dronefl.fl.records import (
     FlSettings,
     SettingsError,
     TrainInstructions,
+    WeightLayout,
     to_arrays,
     to_state,
 )
@@ -48,6 +49,24 @@ def test_model_weights_and_reports_round_trip():
     )
     assert instructions == TrainInstructions(4, 0.1)
     assert TrainInstructions.from_config(ConfigRecord({"server-round": 2})).proximal_mu == 0.0
+
+
+@pytest.mark.parametrize(("dtype", "tolerance"), [("float32", 0.0), ("float16", 2.0**-11)])
+def test_weights_travel_as_one_flat_vector(dtype, tolerance):
+    state = {"a": torch.randn(3, 4, generator=torch.Generator().manual_seed(0)), "b": torch.ones(2)}
+    layout = WeightLayout.of(state, dtype)
+    arrays = layout.pack(state)
+    assert list(arrays.keys()) == ["weights"] and arrays["weights"].shape == (14,)
+    assert arrays["weights"].dtype == dtype
+    back = layout.unpack(arrays)
+    for k, v in state.items():
+        assert back[k].dtype == torch.float32 and back[k].shape == v.shape
+        torch.testing.assert_close(back[k], v, rtol=tolerance, atol=0.0)
+    other = WeightLayout.of({"a": torch.zeros(15)})
+    with pytest.raises(SettingsError, match="expected 14 values"):
+        layout.unpack(other.pack({"a": torch.zeros(15)}))
+    with pytest.raises(SettingsError, match="weights-dtype"):
+        FlSettings("r", "o", weights_dtype="int8")
 
 
 def test_checkpoint_round_trip_and_damage(tmp_path):

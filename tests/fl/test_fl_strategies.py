@@ -23,8 +23,8 @@ def _reply(drone: int, n: int, **arrays: np.ndarray) -> Message:
     return Message(content=content, dst_node_id=0, message_type="train")
 
 
-def _aggregate(strategy, replies, keys=("w",)):
-    strategy._sent_keys = set(keys)
+def _aggregate(strategy, replies, shapes=None):
+    strategy._sent = shapes or {"w": (2,)}
     return strategy.aggregate_train(1, replies)
 
 
@@ -47,6 +47,7 @@ def _crashed() -> Message:
         (lambda: _reply(3, 5, w=np.array([np.nan, 0.0])), "non-finite"),
         (lambda: _reply(3, 5, w=np.array([1e9, 0.0])), "absurd"),
         (lambda: _reply(3, 5, v=np.array([1.0, 1.0])), "unexpected keys"),
+        (lambda: _reply(3, 5, w=np.array([1.0, 1.0, 1.0])), "unexpected shapes"),
         (_crashed, "drone crashed"),
     ],
 )
@@ -62,7 +63,7 @@ def test_a_bad_update_is_left_out_and_logged(make_bad, reason):
 
 def test_without_any_valid_update_the_global_model_is_kept():
     strategy = RobustFedAvg(num_drones=1)
-    arrays, metrics = _aggregate(strategy, [_reply(1, 1, w=np.array([np.inf]))])
+    arrays, metrics = _aggregate(strategy, [_reply(1, 1, w=np.array([np.inf]))], {"w": (1,)})
     assert arrays is None and metrics is None
 
 
@@ -91,22 +92,24 @@ def test_fedper_head_stays_on_the_drone_and_survives_aggregation(case1_run, tmp_
     )
     head = {"head.weight": torch.full((2, 16), 7.0), "head.bias": torch.full((2,), 7.0)}
     context.state[PERSONAL_KEY] = to_arrays(head)
+    layout = settings.layout
     msg = Message(
-        RecordDict({"arrays": to_arrays(body), "config": ConfigRecord({"server-round": 2})}),
+        RecordDict({"arrays": layout.pack(body), "config": ConfigRecord({"server-round": 2})}),
         dst_node_id=1,
         message_type="train",
     )
     reply = handle_train(msg, context, settings)
-    sent = reply.content["arrays"]
-    assert set(sent.keys()) == set(body)  # the head never leaves the drone
+    sent = layout.unpack(reply.content["arrays"])
+    assert set(sent) == set(body)  # the head never leaves the drone
+    assert layout.size == sum(v.numel() for v in body.values())
     trained_head = context.state[PERSONAL_KEY].to_torch_state_dict()
     assert not torch.equal(trained_head["head.weight"], head["head.weight"])  # it trained
     # The cloud averages bodies only; the drone's model for the next round keeps its own head.
     strategy = RobustFedAvg(num_drones=2)
-    strategy._sent_keys = set(body)
-    second = _reply(2, 10, **{k: v.numpy() * 0 for k, v in body.items()})
+    strategy._sent = {"weights": (layout.size,)}
+    second = _reply(2, 10, weights=np.zeros(layout.size, dtype=np.float32))
     arrays, _ = strategy.aggregate_train(1, [reply, second])
-    model = _local_model(settings, arrays.to_torch_state_dict(), context, 1, 3)
+    model = _local_model(settings, layout.unpack(arrays), context, 1, 3)
     for k, v in trained_head.items():
         torch.testing.assert_close(model.state_dict()[k], v)
 

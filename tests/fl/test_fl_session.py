@@ -1,0 +1,54 @@
+"""One simulation engine kept up while the ServerApp plays rounds on demand (the closed loop)."""
+
+import shutil
+
+import pytest
+import torch
+
+from dronefl.fl.records import FlSettings
+from dronefl.fl.server_app import initial_state
+from dronefl.fl.simulation import run_session
+
+
+@pytest.mark.slow
+def test_a_session_plays_rounds_on_new_data_with_fp16_weights(case1_run, tmp_path):
+    # Prepare: each round's data in its own folder (copies of one recording); round 1's folder
+    # is deleted before round 2, so a drone reading any folder but the one named fails.
+    first, second = tmp_path / "round_01", tmp_path / "round_02"
+    shutil.copytree(case1_run, first)
+    shutil.copytree(case1_run, second)
+    settings = FlSettings(str(first), str(tmp_path / "global"), rounds=1, epochs=1, stride=5,
+                          weights_dtype="float16")  # fmt: skip
+    start = initial_state(settings)
+
+    def episode(driver):
+        after_one = driver.play(start, 1, run_dir=str(first))
+        shutil.rmtree(first)
+        after_two = driver.play(after_one, 2, run_dir=str(second))
+        return after_one, after_two, driver.history
+
+    # Execute
+    after_one, after_two, history = run_session(settings, 2, episode)
+
+    # Assert: two global rounds, both drones trained in each, weights moved each round.
+    assert [h["round"] for h in history] == [1, 2]
+    assert all(sorted(h["train_loss"]) == ["1", "2"] and h["rejected"] == [] for h in history)
+    assert not torch.equal(after_one["embed.weight"], start["embed.weight"])
+    assert not torch.equal(after_two["embed.weight"], after_one["embed.weight"])
+    # fp16 on the wire: each drone's model message is the 2-byte weights plus < 2 kB framing.
+    payload = 2 * settings.layout.size
+    for entry in history:
+        for direction in ("down", "up"):
+            per_drone = entry["bytes"][direction]["train"] / 2
+            assert payload < per_drone < payload + 2_000
+
+
+@pytest.mark.slow
+def test_an_error_in_the_episode_reaches_the_caller(case1_run, tmp_path):
+    settings = FlSettings(str(case1_run), str(tmp_path / "global"), rounds=1)
+
+    def episode(driver):
+        raise ValueError("planner diverged")
+
+    with pytest.raises(ValueError, match="planner diverged"):
+        run_session(settings, 2, episode)
