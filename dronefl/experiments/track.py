@@ -142,6 +142,7 @@ def run_episode(config: TrackConfig) -> dict:
         seed=config.seed,
         labels="tracks",
         weights_dtype=config.weights_dtype,
+        train_fraction=1.0,
     )
     n_drones = len(load_scenario(f"case{config.case}").drones)
     return run_session(settings, n_drones, lambda driver: _run_episode(config, driver))
@@ -392,7 +393,6 @@ class FederatedLearner:
         return self.state, {
             "round": server_round,
             "train_loss": entry.get("train_loss"),
-            "pseudo_label_test_mse": entry.get("mean_test_mse"),
             "rejected": entry.get("rejected"),
             "bytes_per_drone": bytes_per_drone,
         }

@@ -55,7 +55,10 @@ class FlSettings:
     ``seed`` model initialisation and training seeds; ``resume`` continue from the checkpoint;
     ``labels`` ``ground_truth`` (``ground_truth.npz``) or ``tracks`` (the cloud's fused tracks in
     ``tracks.npz``: pseudo-labels, as in the closed loop); ``weights_dtype`` the number format
-    of the weights on the wire (``float16`` halves the bytes; training stays in fp32).
+    of the weights on the wire (``float16`` halves the bytes; training stays in fp32);
+    ``train_fraction`` the chronologically first part of each drone's windows it trains on, the
+    rest being its test set (1.0: train on everything and skip federated evaluation, as in the
+    closed loop, where evaluation is not part of the method).
     """
 
     run_dir: str
@@ -73,6 +76,7 @@ class FlSettings:
     resume: bool = False
     labels: str = "ground_truth"
     weights_dtype: str = "float32"
+    train_fraction: float = 0.8
 
     def __post_init__(self) -> None:
         if self.labels not in LABEL_SOURCES:
@@ -86,6 +90,8 @@ class FlSettings:
         for name in ("rounds", "past_steps", "future_steps", "stride", "epochs", "batch_size"):
             if getattr(self, name) < 1:
                 raise SettingsError(f"{name}: must be >= 1, got {getattr(self, name)}")
+        if not 0.0 < self.train_fraction <= 1.0:
+            raise SettingsError(f"train-fraction: must be in (0, 1], got {self.train_fraction}")
         if not self.lr > 0 or self.proximal_mu < 0:
             raise SettingsError("lr must be > 0 and proximal_mu >= 0")
 
@@ -107,8 +113,17 @@ class FlSettings:
     @property
     def windows(self) -> WindowSpec:
         return WindowSpec(
-            self.past_steps, self.future_steps, relative=self.model.relative, stride=self.stride
+            self.past_steps,
+            self.future_steps,
+            relative=self.model.relative,
+            stride=self.stride,
+            train_fraction=self.train_fraction,
         )
+
+    @property
+    def evaluates(self) -> bool:
+        """Whether the drones hold test windows, and so whether rounds evaluate."""
+        return self.train_fraction < 1.0
 
     def train_config(self, server_round: int, drone_id: int) -> TrainConfig:
         """Local training of ``drone_id`` in ``server_round``, seeded by both."""

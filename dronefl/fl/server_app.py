@@ -110,7 +110,11 @@ class RoundDriver:
         Returns the new global weights (fp32)."""
         settings = self.settings
         strategy = make_strategy(
-            settings.method_spec, self.n_drones, settings.proximal_mu, first_round - 1
+            settings.method_spec,
+            self.n_drones,
+            settings.proximal_mu,
+            first_round - 1,
+            evaluate=settings.evaluates,
         )
         config = ConfigRecord({RUN_DIR_KEY: run_dir} if run_dir else {})
         latest = dict(state)
@@ -122,7 +126,7 @@ class RoundDriver:
             log = strategy.logs[server_round]
             entry = {
                 "round": server_round,
-                "mean_test_mse": log.mean_test_mse,
+                "mean_test_mse": log.mean_test_mse if log.test_mse else None,
                 "test_mse": {str(k): v for k, v in sorted(log.test_mse.items())},
                 "train_loss": {str(k): v for k, v in sorted(log.train_loss.items())},
                 "rejected": log.rejected,

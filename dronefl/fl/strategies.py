@@ -7,7 +7,8 @@ Flower's strategy owns the round loop (``Strategy.start``); DroneFL only overrid
   arrays sent;
 * ``aggregate_train`` first screens every reply (:func:`screen_reply`): a drone that failed,
   sent no weights, other names or shapes, non-finite or absurd weights is left out of that round and
-  logged, and the rest are averaged as usual, weighted by sample count:
+  logged, and the rest are averaged as usual (in drone order, so that a run is reproducible
+  bit for bit), weighted by sample count:
   ``w_g = sum_i n_i w_i / sum_i n_i``;
 * ``aggregate_evaluate`` keeps every drone's test MSE and their plain mean (the paper's
   "average test MSE across drones").
@@ -80,6 +81,11 @@ def screen_reply(reply: Message, expected: dict[str, tuple[int, ...]]) -> str | 
     return None
 
 
+def _drone_id_of(reply: Message) -> int:
+    """The drone id a screened training reply reports."""
+    return ClientReport.from_metrics(next(iter(reply.content.metric_records.values()))).drone_id
+
+
 def _drone_of(reply: Message) -> str:
     if reply.has_content():
         for metrics in reply.content.metric_records.values():
@@ -140,6 +146,8 @@ class RobustRounds:
         if not valid:
             log(WARNING, "round %d: no valid update; the global model is kept", record.server_round)
             return None, None
+        # In drone order: replies arrive in any order, and floating-point sums depend on it.
+        valid.sort(key=_drone_id_of)
         return super().aggregate_train(server_round, valid)  # type: ignore[misc]
 
     def aggregate_evaluate(
@@ -159,10 +167,11 @@ class RobustRounds:
 
 
 class RobustFedAvg(RobustRounds, FedAvg):
-    """FedAvg (McMahan et al., 2017) with screened aggregation; used by fedavg, fedper, dronefl."""
+    """FedAvg (McMahan et al., 2017) with screened aggregation; used by fedavg, fedper, dronefl.
+    Without ``evaluate`` the rounds skip federated evaluation."""
 
-    def __init__(self, num_drones: int, round_offset: int = 0) -> None:
-        FedAvg.__init__(self, **_all_nodes(num_drones), arrayrecord_key=ARRAYS_KEY)
+    def __init__(self, num_drones: int, round_offset: int = 0, evaluate: bool = True) -> None:
+        FedAvg.__init__(self, **_all_nodes(num_drones, evaluate), arrayrecord_key=ARRAYS_KEY)
         self._init_robust(round_offset)
 
 
@@ -170,28 +179,39 @@ class RobustFedProx(RobustRounds, FedProx):
     """FedProx (Li et al., 2020): FedAvg that also sends ``proximal-mu`` to the drones, whose
     local loss adds ``(mu / 2) ||w - w_g||^2``."""
 
-    def __init__(self, num_drones: int, proximal_mu: float, round_offset: int = 0) -> None:
+    def __init__(
+        self, num_drones: int, proximal_mu: float, round_offset: int = 0, evaluate: bool = True
+    ) -> None:
         FedProx.__init__(
-            self, **_all_nodes(num_drones), arrayrecord_key=ARRAYS_KEY, proximal_mu=proximal_mu
+            self,
+            **_all_nodes(num_drones, evaluate),
+            arrayrecord_key=ARRAYS_KEY,
+            proximal_mu=proximal_mu,
         )
         self._init_robust(round_offset)
 
 
-def _all_nodes(num_drones: int) -> dict[str, int]:
-    """Every connected drone trains and evaluates in every round (paper Sec. IV-A)."""
+def _all_nodes(num_drones: int, evaluate: bool) -> dict[str, int | float]:
+    """Every connected drone trains (and evaluates, if rounds evaluate) in every round (paper
+    Sec. IV-A)."""
     return {
         "min_train_nodes": num_drones,
-        "min_evaluate_nodes": num_drones,
+        "min_evaluate_nodes": num_drones if evaluate else 0,
         "min_available_nodes": num_drones,
+        "fraction_evaluate": 1.0 if evaluate else 0.0,
     }
 
 
 def make_strategy(
-    method: Method, num_drones: int, proximal_mu: float, round_offset: int = 0
+    method: Method,
+    num_drones: int,
+    proximal_mu: float,
+    round_offset: int = 0,
+    evaluate: bool = True,
 ) -> RobustFedAvg | RobustFedProx:
-    """The server strategy of a federated ``method``."""
+    """The server strategy of a federated ``method`` (rounds evaluate unless told not to)."""
     if not method.federated:
         raise ValueError(f"method {method.name!r} is not federated")
     if method.proximal:
-        return RobustFedProx(num_drones, proximal_mu, round_offset)
-    return RobustFedAvg(num_drones, round_offset)
+        return RobustFedProx(num_drones, proximal_mu, round_offset, evaluate)
+    return RobustFedAvg(num_drones, round_offset, evaluate)

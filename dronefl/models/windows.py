@@ -48,7 +48,8 @@ FEATURE_DIM = BOX_DIM + ODOMETRY_DIM + 1  # box, odometry, detected flag
 @dataclass(frozen=True)
 class WindowSpec:
     """How windows are cut: ``past_steps`` L_p, ``future_steps`` L_f, windows every ``stride``
-    steps, positions ``relative`` to the drone at t, and the chronological ``train_fraction``."""
+    steps, positions ``relative`` to the drone at t, and the chronological ``train_fraction``
+    (1.0: every window is for training, there is no test set)."""
 
     past_steps: int = 10
     future_steps: int = 5
@@ -60,9 +61,9 @@ class WindowSpec:
         for name in ("past_steps", "future_steps", "stride"):
             if getattr(self, name) < 1:
                 raise ValueError(f"WindowSpec.{name} must be >= 1, got {getattr(self, name)}")
-        if not 0.0 < self.train_fraction < 1.0:
+        if not 0.0 < self.train_fraction <= 1.0:
             raise ValueError(
-                f"WindowSpec.train_fraction must be in (0, 1), got {self.train_fraction}"
+                f"WindowSpec.train_fraction must be in (0, 1], got {self.train_fraction}"
             )
 
 
@@ -207,13 +208,14 @@ def split_windows(
     """Chronological train/test split of one drone's windows.
 
     The first ``train_fraction`` of the steps give the training windows, the rest the test
-    windows; no window straddles the split, so no test step is ever seen in training.
+    windows; no window straddles the split, so no test step is ever seen in training. With
+    ``train_fraction`` 1 the test set is empty.
     """
     n_steps = log.t.shape[0]
     split = int(n_steps * spec.train_fraction)
     train = build_windows(log, labels, spec, (0, split))
     test = build_windows(log, labels, spec, (split, n_steps))
-    if len(train) == 0 or len(test) == 0:
+    if len(train) == 0 or (len(test) == 0 and spec.train_fraction < 1.0):
         raise ValueError(
             f"drone {log.drone_id}: too few detected windows for a train/test split "
             f"({len(train)} train, {len(test)} test)"

@@ -18,7 +18,7 @@ def test_a_session_plays_rounds_on_new_data_with_fp16_weights(case1_run, tmp_pat
     shutil.copytree(case1_run, first)
     shutil.copytree(case1_run, second)
     settings = FlSettings(str(first), str(tmp_path / "global"), rounds=1, epochs=1, stride=5,
-                          weights_dtype="float16")  # fmt: skip
+                          weights_dtype="float16", train_fraction=1.0)  # fmt: skip
     start = initial_state(settings)
 
     def episode(driver):
@@ -30,8 +30,11 @@ def test_a_session_plays_rounds_on_new_data_with_fp16_weights(case1_run, tmp_pat
     # Execute
     after_one, after_two, history = run_session(settings, 2, episode)
 
-    # Assert: two global rounds, both drones trained in each, weights moved each round.
+    # Assert: two global rounds, both drones trained in each on all their data (no test
+    # windows, so no evaluation), weights moved each round.
     assert [h["round"] for h in history] == [1, 2]
+    assert all(h["mean_test_mse"] is None and h["bytes"]["down"].keys() == {"train"}
+               for h in history)  # fmt: skip
     assert all(sorted(h["train_loss"]) == ["1", "2"] and h["rejected"] == [] for h in history)
     assert not torch.equal(after_one["embed.weight"], start["embed.weight"])
     assert not torch.equal(after_two["embed.weight"], after_one["embed.weight"])

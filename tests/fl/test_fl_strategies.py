@@ -138,3 +138,13 @@ def test_counting_grid_adds_up_every_message():
     assert traffic["down"]["train"] == sum(message_bytes(m) for m in sent)
     assert traffic["up"]["train"] == sum(message_bytes(m) for m in replies)
     assert traffic["down"]["train"] > 2 * 100 * 8  # at least the float64 payload
+
+
+def test_aggregation_does_not_depend_on_the_order_replies_arrive_in():
+    rng = np.random.default_rng(0)
+    replies = [_reply(d, n, w=rng.normal(size=1000).astype(np.float32)) for d, n in
+               [(1, 3), (2, 7), (3, 11)]]  # fmt: skip
+    shapes = {"w": (1000,)}
+    forward, _ = _aggregate(RobustFedAvg(num_drones=3), replies, shapes)
+    backward, _ = _aggregate(RobustFedAvg(num_drones=3), replies[::-1], shapes)
+    assert np.array_equal(forward["w"].numpy(), backward["w"].numpy())

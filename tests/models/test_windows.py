@@ -75,6 +75,16 @@ def test_chronological_split_never_shares_a_step(tiny_log):
     assert (test.t_index - 1).min() >= 8
 
 
+def test_training_on_everything_leaves_no_test_windows(tiny_log):
+    log, labels = tiny_log
+    spec = WindowSpec(past_steps=2, future_steps=1, train_fraction=1.0)
+    train, test = split_windows(log, labels, spec)
+    assert len(test) == 0
+    assert len(train) == len(build_windows(log, labels, spec))
+    with pytest.raises(ValueError, match=r"train_fraction must be in \(0, 1\]"):
+        WindowSpec(train_fraction=1.5)
+
+
 def test_labels_of_the_wrong_shape_are_rejected(tiny_log):
     log, labels = tiny_log
     with pytest.raises(ValueError, match="labels must have shape"):
