@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
+from dronefl.bench.command import bench as bench_command
 from dronefl.config import ENVIRONMENTS, ScenarioError, builtin_scenarios, load_scenario
 from dronefl.logs import LogError
 from dronefl.perception import DETECTORS
@@ -464,6 +465,9 @@ def pretrain(
     for kind in KINDS:
         run(case, kind, out, rounds=rounds)
     typer.echo(f"wrote {out}/case{case}/(dronefl|centralized)/checkpoint.npz")
+
+
+app.command("bench")(bench_command)
 
 
 def main() -> None:

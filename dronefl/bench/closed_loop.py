@@ -1,0 +1,90 @@
+"""End to end: Case 3 closed-loop episodes with DroneFL and, as the reference, fixed models.
+
+Both episodes run in the same process, one after the other, with the settings of Table I
+(orchard, projection detector, seed 0, an FL round every 100 s for DroneFL; models pretrained in
+the crop field, cached under ``pretrained``). The speed is simulated seconds per wall second;
+DroneFL's includes its Flower rounds (one Flower simulation engine, Ray with two workers of one
+CPU, kept up for the episode). The same DroneFL episode gives DroneFL's communication per drone
+with fp32 weights; a third episode, DroneFL with fp16 weights, gives it with fp16.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from time import perf_counter
+
+from dronefl.bench.comm import dronefl_comm
+from dronefl.experiments.track import TrackConfig, run_episode
+from dronefl.fl.simulation import backend_config
+
+FL_PERIOD_S = 100.0
+
+
+def speed(metrics: dict) -> dict:
+    """The speed figures of one episode's ``metrics``: real-time factor (x) with and without
+    the FL rounds, wall seconds, FL seconds and rounds, planner ms per step."""
+    sim, wall, fl = metrics["sim_seconds"], metrics["wall_seconds"], metrics["fl_seconds"]
+    return {
+        "realtime_factor": metrics["realtime_factor"],
+        "realtime_factor_without_fl": sim / (wall - fl),
+        "wall_seconds": wall,
+        "fl_seconds": fl,
+        "fl_rounds": len(metrics["fl_rounds"]),
+        "planner_ms_per_step": metrics["planner_ms_per_step"],
+    }
+
+
+def bench_closed_loop(out: Path, duration: float, pretrained: Path) -> dict[str, dict]:
+    """Run the ``fixed``, ``dronefl`` and ``dronefl`` with fp16 weights Case 3 episodes of
+    ``duration`` s into ``out/fixed``, ``out/dronefl``, ``out/dronefl_fp16``:
+
+    * ``closed_loop``: DroneFL's real-time factor (x) over the episode's loop, with the fixed
+      episode as reference and ``ratio`` = fixed wall time / DroneFL wall time;
+      ``call_seconds`` is the whole :func:`run_episode` call (setup, Flower session, plots);
+    * ``dronefl_comm`` / ``dronefl_comm_fp16``: DroneFL's KB/s per drone with fp32 / fp16
+      weights (:func:`dronefl.bench.comm.dronefl_comm`).
+    """
+    metrics, calls = {}, {}
+    runs = {"fixed": ("fixed", "float32"), "dronefl": ("dronefl", "float32"),
+            "dronefl_fp16": ("dronefl", "float16")}  # fmt: skip
+    for name, (method, dtype) in runs.items():
+        config = TrackConfig(
+            case=3,
+            out=out / name,
+            method=method,
+            duration=duration,
+            fl_period=FL_PERIOD_S,
+            weights_dtype=dtype,
+            pretrained=pretrained,
+            progress=False,
+            animate=False,
+        )
+        started = perf_counter()
+        metrics[name] = run_episode(config)
+        calls[name] = perf_counter() - started
+    ours = {**speed(metrics["dronefl"]), "call_seconds": calls["dronefl"]}
+    fixed = {**speed(metrics["fixed"]), "call_seconds": calls["fixed"]}
+    workers = backend_config()["init_args"]["num_cpus"]
+    return {
+        "closed_loop": {
+            "what": (
+                f"Case 3 closed loop, orchard, projection detector, {duration:g} s, DroneFL with "
+                f"an FL round every {FL_PERIOD_S:g} s"
+            ),
+            "unit": "x real time",
+            **ours,
+            "threads": f"1 (torch, ONNX Runtime); FL rounds: {workers} Ray workers of 1 CPU",
+            "reference": {"what": "the same episode with fixed models (no FL)", **fixed},
+            "ratio": fixed["wall_seconds"] / ours["wall_seconds"],
+        },
+        "dronefl_comm": {
+            **dronefl_comm(metrics["dronefl"], FL_PERIOD_S),
+            "weights_dtype": "float32",
+        },
+        "dronefl_comm_fp16": {
+            **dronefl_comm(metrics["dronefl_fp16"], FL_PERIOD_S),
+            "what": "DroneFL with fp16 weights: predictions up + controls down every step, "
+            "weights down + up every FL round",
+            "weights_dtype": "float16",
+        },
+    }

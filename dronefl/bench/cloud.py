@@ -1,0 +1,152 @@
+"""The cloud side of one closed-loop step in Case 3: EKF fusion and the planner.
+
+The targets drive along their lanes at their nominal speed (a stand-in for the simulator, so that
+only fusion and planning are timed); every drone reports a noisy prediction (std 1 m) of each
+target inside its footprint; the drones fly the planner's accelerations. Both run in Python with
+numpy on one thread (the matrices are at most 5 x 5, too small for BLAS to use threads).
+
+The fusion reference is filterpy's ``KalmanFilter`` (if installed): one per target, the same
+constant-velocity model, born at the same step, fed the same measurement stream sequentially,
+with a fixed R and no gating or adaptation, so it does less work per measurement than ours.
+"""
+
+from __future__ import annotations
+
+from time import perf_counter
+
+import numpy as np
+
+from dronefl.bench.timing import latency, with_reference
+from dronefl.config import Scenario, load_scenario
+from dronefl.planning import DroneFLPlanner, double_integrator_step
+from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.tracking.models import ConstantVelocity
+from dronefl.types import DroneState
+
+#: Steps left out of every figure: the first updates include numpy's warm-up and track births.
+WARMUP_STEPS = 10
+
+
+def _start(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, list[DroneState]]:
+    """Targets' positions and velocities ``(N, 2)`` and the drones above their targets."""
+    positions = np.array(
+        [[t.start_x, scenario.field.lane_y(t.lane)] for t in scenario.targets], dtype=float
+    )
+    velocities = np.array(
+        [[t.speed if t.heading == "east" else -t.speed, 0.0] for t in scenario.targets]
+    )
+    column = {t.id: k for k, t in enumerate(scenario.targets)}
+    drones = [
+        DroneState(
+            d.id,
+            np.array(d.start, dtype=float)
+            if d.start is not None
+            else positions[[column[j] for j in d.targets]].mean(axis=0),
+            np.zeros(2),
+            d.altitude,
+        )
+        for d in scenario.drones
+    ]
+    return positions, velocities, drones
+
+
+def fly(
+    scenario: Scenario, steps: int, config: FusionConfig, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray, list[list[PositionMeasurement]]]:
+    """Run fusion and planning for ``steps`` steps; return the wall seconds of every fusion
+    update and every planner step (forecast + plan), ``(steps,)`` each, and the measurements
+    of every step."""
+    rng = np.random.default_rng(seed)
+    dt = scenario.dt
+    targets, velocities, drones = _start(scenario)
+    fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
+    planner = DroneFLPlanner.from_scenario(scenario)
+    half = planner.half_extent  # (M, 2) m, footprint half sizes
+    target_ids = np.array(scenario.target_ids)
+    fusion_s, plan_s, stream = np.empty(steps), np.empty(steps), []
+    for step in range(steps):
+        targets = targets + velocities * dt
+        measurements = []
+        for k, d in enumerate(drones):
+            in_view = (np.abs(targets - d.position) <= half[k]).all(axis=1)
+            for j, position in zip(target_ids[in_view], targets[in_view], strict=True):
+                noisy = position + rng.normal(0.0, 1.0, 2)
+                measurements.append(PositionMeasurement(d.drone_id, int(j), noisy))
+        stream.append(measurements)
+        started = perf_counter()
+        fuser.update((step + 1) * dt, measurements)
+        fusion_s[step] = perf_counter() - started
+        started = perf_counter()
+        plan = planner.plan(drones, fuser.forecast(dt))
+        plan_s[step] = perf_counter() - started
+        drones = [
+            DroneState(
+                d.drone_id,
+                *double_integrator_step(d.position, d.velocity, plan.accelerations[d.drone_id], dt),
+                d.altitude,
+                plan.accelerations[d.drone_id],
+            )
+            for d in drones
+        ]
+    return fusion_s, plan_s, stream
+
+
+def filterpy_fusion(
+    stream: list[list[PositionMeasurement]], dt: float, config: FusionConfig
+) -> tuple[np.ndarray, dict[int, np.ndarray]]:
+    """The filterpy reference on ``stream`` (see module doc): wall seconds per step ``(K,)``
+    and every target's final state ``(4,)`` (m, m/s)."""
+    from filterpy.kalman import KalmanFilter
+
+    model = ConstantVelocity(config.acceleration_psd)
+    f, q, h = (
+        model.transition_matrix(dt),
+        model.process_noise(np.zeros(4), dt),
+        model.measurement_matrix,
+    )
+    r = config.initial_noise_std**2 * np.eye(2)
+    filters: dict[int, KalmanFilter] = {}
+    seconds = np.empty(len(stream))
+    for step, measurements in enumerate(stream):
+        started = perf_counter()
+        for kf in filters.values():
+            kf.predict()
+        by_target: dict[int, list[PositionMeasurement]] = {}
+        for m in measurements:
+            by_target.setdefault(m.target_id, []).append(m)
+        for j, group in by_target.items():
+            group.sort(key=lambda m: m.drone_id)
+            if j not in filters:
+                born = np.mean([m.position for m in group], axis=0)
+                mean, cov = model.initial(born, r / len(group), config.initial_speed_std)
+                kf = filters[j] = KalmanFilter(dim_x=4, dim_z=2)
+                kf.x, kf.P, kf.F, kf.Q, kf.H = mean, cov, f, q, h
+                continue
+            for m in group:
+                filters[j].update(m.position, R=r)
+        seconds[step] = perf_counter() - started
+    return seconds, {j: kf.x.copy() for j, kf in filters.items()}
+
+
+def bench_cloud(steps: int) -> dict[str, dict]:
+    """Case 3, ``steps`` steps (>= 20): ``fusion`` per step (ms, with the filterpy reference
+    when filterpy is installed) and ``planner`` per step (forecast + plan, ms)."""
+    if steps < 2 * WARMUP_STEPS:
+        raise ValueError(f"steps must be >= {2 * WARMUP_STEPS}, got {steps}")
+    scenario = load_scenario("case3")
+    config = FusionConfig()  # Case 3's constant-speed targets: q = 0.1 m^2/s^3, as in track
+    fusion_s, plan_s, stream = fly(scenario, steps, config)
+    kept = slice(WARMUP_STEPS, None)
+    per_step = float(np.mean([len(m) for m in stream[kept]]))
+    what = f"adaptive EKF fusion, one Case 3 step ({per_step:.1f} measurements)"
+    fusion = {**latency(what, fusion_s[kept], "ms", 1), "measurements_per_step": per_step}
+    try:
+        reference = filterpy_fusion(stream, scenario.dt, config)[0][kept]
+    except ImportError:
+        fusion["reference"] = None
+    else:
+        fusion = with_reference(
+            fusion, latency("filterpy KalmanFilter, same stream, fixed R", reference, "ms", 1)
+        )
+    planner = latency("DroneFL planner, one Case 3 step (forecast + plan)", plan_s[kept], "ms", 1)
+    return {"fusion": fusion, "planner": planner}

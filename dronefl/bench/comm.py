@@ -1,0 +1,81 @@
+"""Communication per drone in KB/s (1 KB = 1000 B) for DroneFL and the centralized baseline.
+
+* DroneFL: the bytes a closed-loop episode counted (:class:`dronefl.comm.ByteCounter`):
+  predictions up and controls down every step, model weights down and up every FL round.
+* Centralized: every step each drone sends its camera frame, JPEG-encoded as the centralized
+  baseline does (:func:`dronefl.perception.uplink.encode_jpeg` at its default quality), with its
+  odometry. The frame sizes come from rendered Case 3 frames; one message is
+  :data:`UPLINK_HEAD` plus the JPEG bytes, sent at the scenario's rate (5 Hz).
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from dronefl.bench.vision import Frame
+from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
+
+#: Centralized uplink message header: u8 drone id, u32 step, 12 x f32 odometry, u32 JPEG length.
+UPLINK_HEAD = struct.Struct("<BI12fI")
+#: The paper's Table II, KB/s.
+PAPER_KB_PER_S = {"dronefl": 1.56, "centralized": 2.46e3}
+
+
+def centralized_uplink(frames: dict[str, list[Frame]], rate_hz: float) -> dict:
+    """KB/s per drone if every frame went to the cloud at ``rate_hz``, per environment of
+    ``frames`` and per drone (mean message size over that drone's frames); the headline
+    ``kb_per_s`` is the orchard's (where the closed loop is deployed) when it was rendered."""
+    per_env = {}
+    for env, env_frames in frames.items():
+        sizes: dict[int, list[int]] = {}
+        for frame in env_frames:
+            message = UPLINK_HEAD.size + len(encode_jpeg(frame.image, DEFAULT_JPEG_QUALITY))
+            sizes.setdefault(frame.drone_id, []).append(message)
+        drones = {str(d): float(np.mean(s)) * rate_hz / 1000 for d, s in sorted(sizes.items())}
+        per_env[env] = {
+            "kb_per_s": float(np.mean(list(drones.values()))),
+            "drones": drones,
+            "frames": len(env_frames),
+            "mean_jpeg_kb": float(np.mean([m for s in sizes.values() for m in s])) / 1000,
+        }
+    headline = "orchard" if "orchard" in per_env else next(iter(per_env))
+    return {
+        "what": (
+            f"640x640 frame as JPEG q{DEFAULT_JPEG_QUALITY} + {UPLINK_HEAD.size}-byte header with"
+            f" odometry, every step at {rate_hz:g} Hz, per drone ({headline})"
+        ),
+        "unit": "KB/s",
+        "kb_per_s": per_env[headline]["kb_per_s"],
+        "environment": headline,
+        "per_environment": per_env,
+        "paper_kb_per_s": PAPER_KB_PER_S["centralized"],
+    }
+
+
+def dronefl_comm(metrics: dict, fl_period: float) -> dict:
+    """DroneFL's KB/s per drone from a closed-loop episode's ``metrics``
+    (:func:`dronefl.experiments.track.run_episode`), with the mean over drones per message
+    type, and ``at_fl_period``: the same traffic with exactly one round per ``fl_period`` s
+    (the episode's last period ends without a round). ``None`` there when no round ran."""
+    comm = metrics["communication_kb_per_s"]
+    drones = comm["drones"]
+    kinds = sorted({k for v in drones.values() for k in v if k != "total"})
+    by_kind = {k: float(np.mean([v.get(k, 0.0) for v in drones.values()])) for k in kinds}
+    weights = sum(v for k, v in by_kind.items() if k.endswith(":weights"))
+    rounds = len(metrics["fl_rounds"])
+    per_round_kb = weights * metrics["sim_seconds"] / rounds if rounds else None
+    steady = comm["mean_per_drone"] - weights
+    return {
+        "what": "predictions up + controls down every step, weights down + up every FL round",
+        "unit": "KB/s",
+        "kb_per_s": comm["mean_per_drone"],
+        "at_fl_period": steady + per_round_kb / fl_period if per_round_kb is not None else None,
+        "fl_period_s": fl_period,
+        "fl_rounds": rounds,
+        "weights_kb_per_round": per_round_kb,
+        "by_type": by_kind,
+        "drones": {d: v["total"] for d, v in drones.items()},
+        "paper_kb_per_s": PAPER_KB_PER_S["dronefl"],
+    }

@@ -1,0 +1,183 @@
+"""``dronefl bench``: run the benchmarks, write ``bench.json`` and ``bench.md`` atomically.
+
+The benchmarks come in groups that share their setup (recorded windows, rendered frames, a
+closed-loop episode); ``only`` picks groups. :data:`FULL` are the real sizes (Case 3, 600 s
+episodes: 80 s on two cores with the pretrained models cached, 1-2 min more to pretrain them);
+:data:`QUICK` shrinks every size, all in about 15 s (the closed loop then runs 20 s episodes
+without an FL round).
+"""
+
+from __future__ import annotations
+
+# MuJoCo reads MUJOCO_GL at its first import; the vision benchmark's renderer sets it first.
+import dronefl.bench.vision  # noqa: F401  # isort: skip
+
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+from rich.console import Console
+
+from dronefl.bench import closed_loop, cloud, comm, predictor, simulator, vision
+from dronefl.bench.energy import EnergyMeter, rapl_meter, rapl_status
+from dronefl.bench.machine import load_average, machine_info
+from dronefl.bench.report import energy_estimates, evaluate_goals, markdown, summary_line
+from dronefl.config import Environment, load_scenario
+from dronefl.io import atomic_write_json, atomic_write_text
+
+SCHEMA_VERSION = 1
+
+
+class BenchError(ValueError):
+    """Bad ``dronefl bench`` input, found before any benchmark runs."""
+
+
+@dataclass(frozen=True)
+class BenchSizes:
+    """How much each benchmark measures.
+
+    ``sim_seconds`` simulated s per environment in ``environments`` (simulator, frames);
+    ``record_seconds`` of Case 3 recorded for the predictor's data, of which
+    ``windows_per_target`` windows of each of drone 1's 6 targets are kept;
+    ``inference_calls`` x ``inference_rounds`` timed predictor calls per model;
+    ``training_rounds`` timed epochs per model; ``frames`` rendered per environment, spread
+    over ``flight_seconds`` s of flight; ``cloud_steps`` fusion and planner steps;
+    ``episode_seconds`` simulated s per closed-loop episode.
+    """
+
+    sim_seconds: float = 600.0
+    environments: tuple[Environment, ...] = ("crop_field", "orchard")
+    record_seconds: float = 600.0
+    windows_per_target: int = 500
+    inference_calls: int = 500
+    inference_rounds: int = 5
+    training_rounds: int = 5
+    frames: int = 100
+    flight_seconds: float = 600.0
+    cloud_steps: int = 500
+    episode_seconds: float = 600.0
+
+
+FULL = BenchSizes()
+QUICK = replace(
+    FULL,
+    sim_seconds=10.0,
+    record_seconds=60.0,
+    windows_per_target=50,
+    inference_calls=50,
+    inference_rounds=2,
+    training_rounds=2,
+    frames=4,
+    flight_seconds=20.0,
+    cloud_steps=40,
+    episode_seconds=20.0,
+)
+
+
+@dataclass(frozen=True)
+class BenchContext:
+    """What every benchmark group gets: the ``sizes``, the ``work`` folder for its files, the
+    ``pretrained`` models' folder and an energy ``meter`` (None without RAPL)."""
+
+    sizes: BenchSizes
+    work: Path
+    pretrained: Path
+    meter: EnergyMeter | None
+
+
+def _predictor(ctx: BenchContext) -> dict[str, dict]:
+    s = ctx.sizes
+    with tempfile.TemporaryDirectory(dir=ctx.work) as tmp:
+        data, step = predictor.record_windows(Path(tmp), s.record_seconds, s.windows_per_target)
+    return {
+        **predictor.bench_inference(step, s.inference_calls, s.inference_rounds, ctx.meter),
+        **predictor.bench_training(data, s.training_rounds, ctx.meter),
+    }
+
+
+def _vision(ctx: BenchContext) -> dict[str, dict]:
+    s = ctx.sizes
+    frames = {env: vision.render_frames(env, s.frames, s.flight_seconds) for env in s.environments}
+    rate_hz = load_scenario("case3").rate_hz
+    return {
+        **vision.bench_detector(frames, ctx.meter),
+        "centralized_uplink": comm.centralized_uplink(frames, rate_hz),
+    }
+
+
+#: Benchmark groups in the order they run (fast ones first).
+GROUPS: dict[str, Callable[[BenchContext], dict[str, dict]]] = {
+    "cloud": lambda ctx: cloud.bench_cloud(ctx.sizes.cloud_steps),
+    "simulator": lambda ctx: simulator.bench_simulator(
+        ctx.sizes.sim_seconds, ctx.sizes.environments
+    ),
+    "predictor": _predictor,
+    "vision": _vision,
+    "closed_loop": lambda ctx: closed_loop.bench_closed_loop(
+        ctx.work / "closed_loop", ctx.sizes.episode_seconds, ctx.pretrained
+    ),
+}
+
+
+def check_inputs(out: Path, only: Sequence[str] | None, pretrained: Path) -> tuple[str, ...]:
+    """Validate before any work; returns the groups to run. Raises :class:`BenchError`."""
+    out, pretrained = Path(out), Path(pretrained)
+    if out.exists() and not out.is_dir():
+        raise BenchError(f"--out: {out} is a file, not a folder")
+    if pretrained.exists() and not pretrained.is_dir():
+        raise BenchError(f"--pretrained: {pretrained} is a file, not a folder")
+    groups = tuple(only) if only else tuple(GROUPS)
+    unknown = [g for g in groups if g not in GROUPS]
+    if unknown:
+        raise BenchError(f"--only: unknown {', '.join(unknown)}; choose from {', '.join(GROUPS)}")
+    return tuple(g for g in GROUPS if g in groups)
+
+
+def run_bench(
+    out: Path,
+    quick: bool = False,
+    only: Sequence[str] | None = None,
+    pretrained: Path = Path("runs/pretrained"),
+    progress: bool = True,
+    sizes: BenchSizes | None = None,
+) -> dict:
+    """Run the benchmark groups ``only`` (default: all) and write ``out/bench.json`` and
+    ``out/bench.md``; returns what ``bench.json`` holds.
+
+    ``quick`` uses :data:`QUICK` sizes (``sizes`` overrides both). Closed-loop episodes go to
+    ``out/closed_loop/<method>/``; pretrained models are taken from (or trained into)
+    ``pretrained``. One line per figure is printed to stderr as it is measured unless
+    ``progress`` is False.
+    """
+    groups = check_inputs(out, only, pretrained)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    sizes = sizes or (QUICK if quick else FULL)
+    console = Console(stderr=True, quiet=not progress)
+    ctx = BenchContext(sizes, out, Path(pretrained), rapl_meter())
+    started, wall, load = time.strftime("%Y-%m-%d %H:%M:%S %Z"), time.perf_counter(), load_average()
+    figures: dict[str, dict] = {}
+    for group in groups:
+        with console.status(f"benchmark: {group} ..."):
+            measured = GROUPS[group](ctx)
+        for name, figure in measured.items():
+            console.print(summary_line(name, figure), markup=False, highlight=False, soft_wrap=True)
+        figures.update(measured)
+        # Written after every group: an interrupted run keeps what it measured.
+        results = {
+            "schema": SCHEMA_VERSION,
+            "quick": quick,
+            "started": started,
+            "wall_seconds": time.perf_counter() - wall,
+            "groups": list(groups[: groups.index(group) + 1]),
+            "sizes": {**asdict(sizes), "environments": list(sizes.environments)},
+            "machine": {**machine_info(), "load_average": {"start": load, "end": load_average()}},
+            "benchmarks": figures,
+            "energy": {"rapl": rapl_status(), "estimates": energy_estimates(figures)},
+            "goals": evaluate_goals(figures),
+        }
+        atomic_write_json(out / "bench.json", results)
+        atomic_write_text(out / "bench.md", markdown(results))
+    return results
