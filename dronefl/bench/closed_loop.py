@@ -79,6 +79,8 @@ def bench_closed_loop(out: Path, duration: float, pretrained: Path) -> dict[str,
         },
         "dronefl_comm": {
             **dronefl_comm(metrics["dronefl"], FL_PERIOD_S),
+            "what": "DroneFL with fp32 weights: predictions up + controls down every step, "
+            "weights down + up every FL round",
             "weights_dtype": "float32",
         },
         "dronefl_comm_fp16": {
