@@ -56,7 +56,7 @@ class PredictionMessage:
 
     def encode(self) -> bytes:
         """Pack to bytes (format in the module docstring)."""
-        n, horizon = len(self.target_ids), self.positions.shape[1] if len(self.target_ids) else 0
+        n, horizon = len(self.target_ids), self.positions.shape[1]
         parts = [_PRED_HEAD.pack(WIRE_VERSION, self.drone_id, self.step, horizon, n * horizon)]
         centimetres = np.clip(np.rint(np.asarray(self.positions) * 100), -32767, 32767)
         for k, target_id in enumerate(self.target_ids):
@@ -79,7 +79,7 @@ class PredictionMessage:
             _PRED_ITEM.unpack_from(data, _PRED_HEAD.size + k * _PRED_ITEM.size)
             for k in range(count)
         ]
-        n = count // horizon if horizon else 0
+        n = count // horizon if horizon else 0  # no targets: (0, L_f, 2) positions
         positions = np.array([[x, y] for _, _, x, y in items], dtype=float).reshape(n, horizon, 2)
         positions /= 100.0  # cm -> m
         target_ids = tuple(items[k * horizon][0] for k in range(n))

@@ -36,6 +36,8 @@ def test_prediction_message_with_a_longer_horizon_and_none():
     assert np.array_equal(PredictionMessage.decode(data).positions, positions)
     empty = PredictionMessage(1, 8, (), np.zeros((0, 1, 2))).encode()
     assert len(empty) == 9 and PredictionMessage.decode(empty).target_ids == ()
+    # A drone that sees none of its targets still says which horizon it predicts.
+    assert PredictionMessage.decode(empty).positions.shape == (0, 1, 2)
 
 
 def test_control_message_round_trip():
