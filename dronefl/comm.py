@@ -19,6 +19,12 @@ saturated at the edge (the cloud's gate rejects such an outlier anyway).
 
     u8 version | u8 drone_id | u32 step | f32 ax (m/s^2) | f32 ay (m/s^2)
 
+Raw inputs of the centralized baseline (drone -> cloud), :func:`raw_inputs_message`,
+``53 + 17 b`` bytes for ``b`` boxes (none when the cloud detects on the drone's JPEG frame,
+which is counted separately)::
+
+    u8 drone_id | u32 step | 12 x f32 odometry | b x ( u8 target_id | 4 x f32 box )
+
 Model weights exchanged by federated learning are counted separately by :mod:`dronefl.fl`.
 """
 
@@ -26,9 +32,12 @@ from __future__ import annotations
 
 import struct
 from collections import defaultdict
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
+
+from dronefl.types import Detection
 
 WIRE_VERSION = 2
 _PRED_HEAD = struct.Struct("<BBIBH")
@@ -36,6 +45,8 @@ _PRED_ITEM = struct.Struct("<BBhh")
 #: Largest |coordinate| a prediction message carries, m (i16 centimetres).
 MAX_COORDINATE = 32767 / 100
 _CONTROL = struct.Struct("<BBIff")
+_RAW_HEAD = struct.Struct("<BI12f")
+_RAW_BOX = struct.Struct("<B4f")
 
 
 class WireError(ValueError):
@@ -107,6 +118,15 @@ class ControlMessage:
         if version != WIRE_VERSION:
             raise WireError(f"control message version {version}, expected {WIRE_VERSION}")
         return cls(drone_id, step, (ax, ay))
+
+
+def raw_inputs_message(
+    drone_id: int, step: int, odometry: np.ndarray, boxes: Iterable[Detection] = ()
+) -> bytes:
+    """What a drone of the centralized baseline sends each step besides a camera frame: its
+    odometry vector ``(12,)`` and the ``boxes`` it detected (format in the module docstring)."""
+    head = _RAW_HEAD.pack(drone_id, step, *np.asarray(odometry, dtype=np.float32))
+    return head + b"".join(_RAW_BOX.pack(d.target_id, *d.box) for d in boxes)
 
 
 class ByteCounter:

@@ -4,21 +4,21 @@
   predictions up and controls down every step, model weights down and up every FL round.
 * Centralized: every step each drone sends its camera frame, JPEG-encoded as the centralized
   baseline does (:func:`dronefl.perception.uplink.encode_jpeg` at its default quality), with its
-  odometry. The frame sizes come from rendered Case 3 frames; one message is
-  :data:`UPLINK_HEAD` plus the JPEG bytes, sent at the scenario's rate (5 Hz).
+  odometry. The frame sizes come from rendered Case 3 frames; one step's uplink is the JPEG
+  bytes plus the odometry message of the closed loop (:func:`dronefl.comm.raw_inputs_message`,
+  :data:`ODOMETRY_BYTES`), at the scenario's rate (5 Hz).
 """
 
 from __future__ import annotations
 
-import struct
-
 import numpy as np
 
 from dronefl.bench.vision import Frame
+from dronefl.comm import raw_inputs_message
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
 
-#: Centralized uplink message header: u8 drone id, u32 step, 12 x f32 odometry, u32 JPEG length.
-UPLINK_HEAD = struct.Struct("<BI12fI")
+#: Bytes of a centralized drone's odometry message sent with each frame.
+ODOMETRY_BYTES = len(raw_inputs_message(0, 0, np.zeros(12)))
 #: The paper's Table II, KB/s.
 PAPER_KB_PER_S = {"dronefl": 1.56, "centralized": 2.46e3}
 
@@ -31,7 +31,7 @@ def centralized_uplink(frames: dict[str, list[Frame]], rate_hz: float) -> dict:
     for env, env_frames in frames.items():
         sizes: dict[int, list[int]] = {}
         for frame in env_frames:
-            message = UPLINK_HEAD.size + len(encode_jpeg(frame.image, DEFAULT_JPEG_QUALITY))
+            message = ODOMETRY_BYTES + len(encode_jpeg(frame.image, DEFAULT_JPEG_QUALITY))
             sizes.setdefault(frame.drone_id, []).append(message)
         drones = {str(d): float(np.mean(s)) * rate_hz / 1000 for d, s in sorted(sizes.items())}
         per_env[env] = {
@@ -43,8 +43,8 @@ def centralized_uplink(frames: dict[str, list[Frame]], rate_hz: float) -> dict:
     headline = "orchard" if "orchard" in per_env else next(iter(per_env))
     return {
         "what": (
-            f"640x640 frame as JPEG q{DEFAULT_JPEG_QUALITY} + {UPLINK_HEAD.size}-byte header with"
-            f" odometry, every step at {rate_hz:g} Hz, per drone ({headline})"
+            f"640x640 frame as JPEG q{DEFAULT_JPEG_QUALITY} + {ODOMETRY_BYTES}-byte odometry"
+            f" message, every step at {rate_hz:g} Hz, per drone ({headline})"
         ),
         "unit": "KB/s",
         "kb_per_s": per_env[headline]["kb_per_s"],

@@ -24,7 +24,6 @@ the episode runs in the orchard by default (SPEC §8).
 from __future__ import annotations
 
 import shutil
-import struct
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -32,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dronefl.comm import ByteCounter, ControlMessage, PredictionMessage
+from dronefl.comm import ByteCounter, ControlMessage, PredictionMessage, raw_inputs_message
 from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.fl.records import WEIGHT_DTYPES, FlSettings
 from dronefl.fl.server_app import RoundDriver
@@ -51,10 +50,6 @@ from dronefl.sim.world import World
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
 
 TRACK_METHODS: tuple[str, ...] = ("centralized", "fixed", "dronefl")
-#: Bytes a drone sends the cloud per step in the centralized baseline without images:
-#: header (u8 drone, u32 step), odometry 12 x f32, and per target u8 id + 4 x f32 box.
-_RAW_HEAD = struct.Struct("<BI12f")
-_RAW_BOX = struct.Struct("<B4f")
 
 
 @dataclass(frozen=True)
@@ -202,7 +197,7 @@ def _run_episode(config: TrackConfig, driver: RoundDriver | None) -> dict:
                 record.append(odometry, detections)
                 if config.method == "centralized":
                     boxes = () if cloud_vision else detections  # in the cloud already
-                    raw = _raw_inputs(record.drone_id, k, odometry, boxes)
+                    raw = raw_inputs_message(record.drone_id, k, odometry.vector, boxes)
                     kind = "odometry" if cloud_vision else "raw_inputs"
                     counter.add(record.drone_id, "up", kind, len(raw))
                     if cloud_vision:
@@ -260,7 +255,9 @@ def _run_episode(config: TrackConfig, driver: RoundDriver | None) -> dict:
             "seed": config.seed,
             "environment": config.environment,
             "detector": config.detector,
-            "centralized_inputs": _centralized_inputs(config, detector),
+            "centralized_inputs": _centralized_inputs(
+                config, detector.quality if cloud_vision else None
+            ),
             "labels": config.labels,
             "sim_seconds": n_steps * scenario.dt,
             "wall_seconds": wall,
@@ -339,21 +336,13 @@ def _record_truth(log: EpisodeLog, k: int, world: World) -> None:
     log.drone_velocity[k] = world.drones.velocity
 
 
-def _centralized_inputs(config: TrackConfig, detector: object) -> str | None:
+def _centralized_inputs(config: TrackConfig, jpeg_quality: int | None) -> str | None:
     """What the centralized baseline's drones send, in words (None for the other methods)."""
     if config.method != "centralized":
         return None
-    if config.detector == "yolo":
-        quality = getattr(detector, "quality", None)
-        return f"JPEG camera frames (quality {quality}) and odometry of every drone"
+    if jpeg_quality is not None:
+        return f"JPEG camera frames (quality {jpeg_quality}) and odometry of every drone"
     return "boxes and odometry of every drone (no images: the projection detector is in use)"
-
-
-def _raw_inputs(drone_id: int, step: int, odometry, detections) -> bytes:
-    """What a drone of the centralized baseline sends each step besides a camera frame: its
-    odometry and the boxes it detected (none when the cloud detects on the frames)."""
-    payload = _RAW_HEAD.pack(drone_id, step, *odometry.vector.astype(np.float32))
-    return payload + b"".join(_RAW_BOX.pack(d.target_id, *d.box) for d in detections)
 
 
 def _labels(source: str, log: EpisodeLog, steps: int) -> np.ndarray:

@@ -65,10 +65,7 @@ def build_client_app(defaults: dict | None = None) -> ClientApp:
 
 def handle_train(msg: Message, context: Context, settings: FlSettings) -> Message:
     """One round of local training on this drone."""
-    torch.set_num_threads(1)
-    instructions = TrainInstructions.from_config(msg.content["config"])
-    settings = _for_round(settings, instructions)
-    drone_id = _drone_id(context, settings)
+    settings, instructions, drone_id = _round_context(msg, context, settings)
     train_set, _ = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
     layout = settings.layout
     global_state = layout.unpack(msg.content[ARRAYS_KEY])
@@ -90,10 +87,7 @@ def handle_train(msg: Message, context: Context, settings: FlSettings) -> Messag
 
 def handle_evaluate(msg: Message, context: Context, settings: FlSettings) -> Message:
     """Test MSE (m^2) of the global model (with this drone's personal head, for FedPer)."""
-    torch.set_num_threads(1)
-    instructions = TrainInstructions.from_config(msg.content["config"])
-    settings = _for_round(settings, instructions)
-    drone_id = _drone_id(context, settings)
+    settings, instructions, drone_id = _round_context(msg, context, settings)
     _, test_set = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
     global_state = settings.layout.unpack(msg.content[ARRAYS_KEY])
     model = _local_model(settings, global_state, context, drone_id, instructions.server_round)
@@ -151,11 +145,16 @@ def _settings(context: Context, defaults: dict | None) -> FlSettings:
     return FlSettings.from_run_config({**(defaults or {}), **dict(context.run_config)})
 
 
-def _for_round(settings: FlSettings, instructions: TrainInstructions) -> FlSettings:
-    """The settings with the round's data folder, when the cloud named one."""
-    if instructions.run_dir is None:
-        return settings
-    return replace(settings, run_dir=instructions.run_dir)
+def _round_context(
+    msg: Message, context: Context, settings: FlSettings
+) -> tuple[FlSettings, TrainInstructions, int]:
+    """The cloud's instructions for this round, the settings with the round's data folder
+    (when the cloud named one) and this node's drone id; one torch thread per drone."""
+    torch.set_num_threads(1)
+    instructions = TrainInstructions.from_config(msg.content["config"])
+    if instructions.run_dir is not None:
+        settings = replace(settings, run_dir=instructions.run_dir)
+    return settings, instructions, _drone_id(context, settings)
 
 
 def _drone_id(context: Context, settings: FlSettings) -> int:

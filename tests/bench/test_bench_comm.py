@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dronefl.bench.comm import UPLINK_HEAD, centralized_uplink, dronefl_comm
+from dronefl.bench.comm import ODOMETRY_BYTES, centralized_uplink, dronefl_comm
 from dronefl.bench.vision import Frame
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
 
@@ -23,7 +23,7 @@ def test_centralized_uplink_is_message_bytes_times_rate_per_drone():
     uplink = centralized_uplink(frames, rate_hz=5.0)
 
     sizes = [len(encode_jpeg(f.image, DEFAULT_JPEG_QUALITY)) for f in frames["crop_field"][:2]]
-    drone_1 = UPLINK_HEAD.size + np.mean(sizes)
+    drone_1 = ODOMETRY_BYTES + np.mean(sizes)
     crop = uplink["per_environment"]["crop_field"]
     assert crop["drones"]["1"] == pytest.approx(drone_1 * 5.0 / 1000)
     assert crop["kb_per_s"] == pytest.approx(np.mean(list(crop["drones"].values())))

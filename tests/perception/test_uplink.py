@@ -5,8 +5,6 @@ import numpy as np
 import pytest
 
 from dronefl.config import load_scenario
-from dronefl.perception.dataset import label_scene
-from dronefl.perception.evaluation import iou_xywh
 from dronefl.perception.render import SceneRenderer
 from dronefl.perception.uplink import (
     DEFAULT_JPEG_QUALITY,
@@ -73,22 +71,10 @@ def test_bad_bytes_are_refused(frame: np.ndarray) -> None:
         decode_jpeg(frame)
 
 
-def assert_all_visible_found(world: World, detector: CloudVisionDetector, view: CameraView) -> int:
-    """Detect in ``view`` through the uplink and check every vehicle the projection rule calls
-    visible: found under its own id, IoU >= 0.5 with its projected box. Returns their number."""
-    truth = label_scene(
-        world.camera, SCENARIO, world.environment, view.camera_position, view.yaw,
-        view.targets, min_visible=0.5,
-    )  # fmt: skip
-    found = {d.target_id: np.array(d.box) for d in detector.detect(view)}
-    for target_id, box in zip(truth.target_ids, truth.boxes, strict=True):
-        assert target_id in found, f"target {target_id} missed at {view.camera_position}"
-        assert iou_xywh(found[target_id], box) >= 0.5, f"target {target_id} box off"
-    return len(truth.target_ids)
-
-
 @pytest.mark.parametrize("environment", ["crop_field", "orchard"])
-def test_cloud_finds_every_visible_target_in_the_decoded_frame(environment: str) -> None:
+def test_cloud_finds_every_visible_target_in_the_decoded_frame(
+    environment: str, assert_all_visible_found
+) -> None:
     world = World(SCENARIO, environment=environment, seed=0)
     detector = CloudVisionDetector.for_world(world)
     checked = sum(assert_all_visible_found(world, detector, v) for v in world.camera_views())
@@ -96,7 +82,7 @@ def test_cloud_finds_every_visible_target_in_the_decoded_frame(environment: str)
     assert checked >= 6  # the frames do show vehicles
 
 
-def test_hand_made_crop_field_scene_at_quality_50() -> None:
+def test_hand_made_crop_field_scene_at_quality_50(assert_all_visible_found) -> None:
     world = World(SCENARIO, environment="crop_field", seed=0)
     detector = CloudVisionDetector.for_world(world, quality=50)
     targets = tuple(

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 
 from dronefl.config import load_scenario
-from dronefl.perception.dataset import label_scene
 from dronefl.perception.render import SceneRenderer
 from dronefl.perception.yolo import YoloDetector, letterbox, shipped_detector_path
 from dronefl.sim.world import World
@@ -16,28 +15,8 @@ from dronefl.types import CameraView, TargetState
 SCENARIO = load_scenario("case3")
 
 
-def iou(a: np.ndarray, b: np.ndarray) -> float:
-    lo = np.maximum(a[:2] - a[2:] / 2, b[:2] - b[2:] / 2)
-    hi = np.minimum(a[:2] + a[2:] / 2, b[:2] + b[2:] / 2)
-    inter = np.prod(np.clip(hi - lo, 0, None))
-    return float(inter / (np.prod(a[2:]) + np.prod(b[2:]) - inter))
-
-
-def assert_all_visible_found(world: World, detector: YoloDetector, view: CameraView) -> int:
-    """Detect in ``view`` and check every vehicle the projection rule calls visible."""
-    truth = label_scene(
-        world.camera, SCENARIO, world.environment, view.camera_position, view.yaw,
-        view.targets, min_visible=0.5,
-    )  # fmt: skip
-    found = {d.target_id: np.array(d.box) for d in detector.detect(view)}
-    for target_id, box in zip(truth.target_ids, truth.boxes, strict=True):
-        assert target_id in found, f"target {target_id} missed at {view.camera_position}"
-        assert iou(found[target_id], box) >= 0.5, f"target {target_id} box off"
-    return len(truth.target_ids)
-
-
 @pytest.mark.parametrize("environment", ["crop_field", "orchard"])
-def test_case3_views_find_every_visible_target(environment: str) -> None:
+def test_case3_views_find_every_visible_target(environment: str, assert_all_visible_found) -> None:
     world = World(SCENARIO, environment=environment, seed=0)
     detector = YoloDetector.for_world(world)
     checked = sum(assert_all_visible_found(world, detector, v) for v in world.camera_views())
@@ -45,7 +24,7 @@ def test_case3_views_find_every_visible_target(environment: str) -> None:
     detector.renderer.close()
 
 
-def test_hand_made_crop_field_scene() -> None:
+def test_hand_made_crop_field_scene(assert_all_visible_found) -> None:
     world = World(SCENARIO, environment="crop_field", seed=0)
     detector = YoloDetector.for_world(world)
     camera = np.array([80.0, 62.5, 30.0])
