@@ -7,9 +7,9 @@ Each module measures one part and returns plain dicts of figures (:mod:`~dronefl
 * :mod:`~dronefl.bench.vision`: rendered frames, the YOLO detector per frame;
 * :mod:`~dronefl.bench.cloud`: EKF fusion and planner per step;
 * :mod:`~dronefl.bench.closed_loop`: end-to-end Case 3 speed, DroneFL's communication;
-* :mod:`~dronefl.bench.comm`: communication per drone, DroneFL and centralized;
+* :mod:`~dronefl.bench.bandwidth`: communication per drone, DroneFL and centralized;
 * :mod:`~dronefl.bench.energy`: RAPL readings or labelled estimates;
 * :mod:`~dronefl.bench.report`: goals, Table II, ``bench.md``;
 * :mod:`~dronefl.bench.run`: :func:`~dronefl.bench.run.run_bench`, the whole benchmark;
-* :mod:`~dronefl.bench.command`: the ``dronefl bench`` command.
+* :mod:`~dronefl.bench.bandwidthand`: the ``dronefl bench`` command.
 """

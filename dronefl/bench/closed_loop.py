@@ -13,7 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from time import perf_counter
 
-from dronefl.bench.comm import dronefl_comm
+from dronefl.bench.bandwidth import dronefl_comm
 from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.simulation import backend_config
 
@@ -42,7 +42,7 @@ def bench_closed_loop(out: Path, duration: float, pretrained: Path) -> dict[str,
       episode as reference and ``ratio`` = fixed wall time / DroneFL wall time;
       ``call_seconds`` is the whole :func:`run_episode` call (setup, Flower session, plots);
     * ``dronefl_comm`` / ``dronefl_comm_fp16``: DroneFL's KB/s per drone with fp32 / fp16
-      weights (:func:`dronefl.bench.comm.dronefl_comm`).
+      weights (:func:`dronefl.bench.bandwidth.dronefl_comm`).
     """
     metrics, calls = {}, {}
     runs = {"fixed": ("fixed", "float32"), "dronefl": ("dronefl", "float32"),

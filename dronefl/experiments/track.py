@@ -31,7 +31,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from dronefl.comm import ByteCounter, ControlMessage, PredictionMessage, raw_inputs_message
 from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.fl.records import WEIGHT_DTYPES, FlSettings
 from dronefl.fl.server_app import RoundDriver
@@ -48,6 +47,7 @@ from dronefl.planning import DroneFLPlanner
 from dronefl.progress import progress_bar
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.wire import ByteCounter, ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = ("centralized", "fixed", "dronefl")
 

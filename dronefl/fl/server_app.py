@@ -20,9 +20,9 @@ from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord
 from flwr.serverapp import Grid, ServerApp
 
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from dronefl.fl.comm import CountingGrid, Traffic
 from dronefl.fl.records import RUN_DIR_KEY, FlSettings, SettingsError, global_part
 from dronefl.fl.strategies import make_strategy
+from dronefl.fl.traffic import CountingGrid, Traffic
 from dronefl.models.model import build_model
 
 #: Called with each finished round's history entry (e.g. to advance a progress bar).

@@ -6,11 +6,11 @@ import torch
 from flwr.app import Array, ArrayRecord, ConfigRecord, Context, Error, Message, RecordDict
 
 from dronefl.fl.client_app import PERSONAL_KEY, _local_model, handle_train
-from dronefl.fl.comm import CountingGrid, message_bytes
 from dronefl.fl.methods import METHODS
 from dronefl.fl.records import ClientReport, FlSettings, to_arrays
 from dronefl.fl.server_app import initial_state
 from dronefl.fl.strategies import RobustFedAvg, RobustFedProx, make_strategy
+from dronefl.fl.traffic import CountingGrid, message_bytes
 
 
 def _reply(drone: int, n: int, **arrays: np.ndarray) -> Message:

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dronefl.comm import (
+from dronefl.wire import (
     MAX_COORDINATE,
     ByteCounter,
     ControlMessage,

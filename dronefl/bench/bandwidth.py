@@ -1,11 +1,11 @@
 """Communication per drone in KB/s (1 KB = 1000 B) for DroneFL and the centralized baseline.
 
-* DroneFL: the bytes a closed-loop episode counted (:class:`dronefl.comm.ByteCounter`):
+* DroneFL: the bytes a closed-loop episode counted (:class:`dronefl.wire.ByteCounter`):
   predictions up and controls down every step, model weights down and up every FL round.
 * Centralized: every step each drone sends its camera frame, JPEG-encoded as the centralized
   baseline does (:func:`dronefl.perception.uplink.encode_jpeg` at its default quality), with its
   odometry. The frame sizes come from rendered Case 3 frames; one step's uplink is the JPEG
-  bytes plus the odometry message of the closed loop (:func:`dronefl.comm.raw_inputs_message`,
+  bytes plus the odometry message of the closed loop (:func:`dronefl.wire.raw_inputs_message`,
   :data:`ODOMETRY_BYTES`), at the scenario's rate (5 Hz).
 """
 
@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 
 from dronefl.bench.vision import Frame
-from dronefl.comm import raw_inputs_message
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
+from dronefl.wire import raw_inputs_message
 
 #: Bytes of a centralized drone's odometry message sent with each frame.
 ODOMETRY_BYTES = len(raw_inputs_message(0, 0, np.zeros(12)))

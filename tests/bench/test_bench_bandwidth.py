@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from dronefl.bench.comm import ODOMETRY_BYTES, centralized_uplink, dronefl_comm
+from dronefl.bench.bandwidth import ODOMETRY_BYTES, centralized_uplink, dronefl_comm
 from dronefl.bench.vision import Frame
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
 
