@@ -1,4 +1,5 @@
-"""Cloud-side fusion: target motion models, the adaptive EKF and multi-drone fusion (SPEC §6)."""
+"""Cloud-side fusion: target motion models, the adaptive EKF, multi-drone fusion, RTS smoothing,
+pseudo-labels and track metrics (SPEC §6, §8)."""
 
 from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
 from dronefl.tracking.ekf import CHI2_2DOF_99, ExtendedKalmanFilter, UpdateDiagnostics
@@ -9,19 +10,26 @@ from dronefl.tracking.fusion import (
     Track,
     TrackForecast,
 )
+from dronefl.tracking.methods import FUSION_METHODS, FusionMethod
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
+from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 __all__ = [
     "CHI2_2DOF_99",
+    "FUSION_METHODS",
     "AdaptiveMeasurementNoise",
     "ConstantVelocity",
     "CoordinatedTurn",
     "ExtendedKalmanFilter",
     "FusionConfig",
+    "FusionMethod",
     "Fuser",
     "MotionModel",
     "PositionMeasurement",
+    "SmoothedTrack",
     "Track",
     "TrackForecast",
+    "TrackHistory",
     "UpdateDiagnostics",
+    "rts_smooth",
 ]

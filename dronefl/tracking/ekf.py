@@ -86,7 +86,6 @@ class ExtendedKalmanFilter:
         self.gate = gate
         self.rejections = 0
         self.diagnostics: UpdateDiagnostics | None = None
-        self._h = model.measurement_matrix
 
     def predict(self, dt: float) -> None:
         """Propagate the estimate ``dt`` s ahead (``dt >= 0``; 0 leaves it unchanged)."""
@@ -106,25 +105,36 @@ class ExtendedKalmanFilter:
         r = np.asarray(r, dtype=float)
         if z.shape != (2,) or r.shape != (2, 2):
             raise ValueError(f"need z (2,) and R (2, 2), got {z.shape} and {r.shape}")
-        h, p = self._h, self.covariance
-        hp = h @ p  # (2, n)
-        hph = hp @ h.T
-        s = hph + r
-        s_inv = _inv2(s)
-        y = z - h @ self.mean
-        nis = float(y @ s_inv @ y)
-        if self.gate is not None and nis > self.gate:
+        self.mean, self.covariance, self.diagnostics = position_update(
+            self.mean, self.covariance, z, r, self.gate
+        )
+        if not self.diagnostics.accepted:
             self.rejections += 1
-            self.diagnostics = UpdateDiagnostics(
-                y, s, hph, np.zeros((self.model.ndim, 2)), nis, accepted=False
-            )
-            return self.diagnostics
-        k = hp.T @ s_inv  # K = P H^T S^-1, (n, 2)
-        i_kh = np.eye(self.model.ndim) - k @ h
-        self.mean = self.mean + k @ y
-        self.covariance = i_kh @ p @ i_kh.T + k @ r @ k.T
-        self.diagnostics = UpdateDiagnostics(y, s, hph, k, nis, accepted=True)
         return self.diagnostics
+
+
+def position_update(
+    mean: np.ndarray, covariance: np.ndarray, z: np.ndarray, r: np.ndarray, gate: float | None
+) -> tuple[np.ndarray, np.ndarray, UpdateDiagnostics]:
+    """The gated Kalman update of ``(mean (n,), covariance (n, n))`` with a position ``z``
+    ``(2,)`` m of noise ``r`` ``(2, 2)`` m^2 (equations in :class:`ExtendedKalmanFilter`);
+    returns the new mean, covariance and the update's diagnostics (a rejected update returns
+    the inputs unchanged). ``H = [I_2 0]``, so ``H P`` is the first two rows of ``P``."""
+    n = len(mean)
+    hp = covariance[:2]  # H P, (2, n)
+    hph = hp[:, :2]
+    s = hph + r
+    s_inv = _inv2(s)
+    y = z - mean[:2]
+    nis = float(y @ s_inv @ y)
+    if gate is not None and nis > gate:
+        return mean, covariance, UpdateDiagnostics(y, s, hph, np.zeros((n, 2)), nis, False)
+    k = hp.T @ s_inv  # K = P H^T S^-1, (n, 2)
+    i_kh = np.eye(n)
+    i_kh[:, :2] -= k
+    new_mean = mean + k @ y
+    new_covariance = i_kh @ covariance @ i_kh.T + k @ r @ k.T
+    return new_mean, new_covariance, UpdateDiagnostics(y, s, hph, k, nis, True)
 
 
 def _inv2(m: np.ndarray) -> np.ndarray:

@@ -18,15 +18,18 @@ from typing import Literal
 
 import numpy as np
 
-from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
-from dronefl.tracking.ekf import CHI2_2DOF_99, ExtendedKalmanFilter
+from dronefl.tracking.ekf import CHI2_2DOF_99
+from dronefl.tracking.methods import FUSION_METHODS
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
+from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 
 @dataclass(frozen=True)
 class FusionConfig:
     """Settings of the cloud fusion (SPEC §6).
 
+    ``method``: the fusion method, a key of :data:`~dronefl.tracking.methods.FUSION_METHODS`
+    (``robust`` by default; ``paper`` is the paper's sequential adaptive EKF).
     ``motion``: ``constant_velocity`` (x, y, vx, vy) or ``coordinated_turn`` (x, y, v, psi, omega).
     ``acceleration_psd``: white-acceleration PSD q, m^2/s^3 (0.5 m/s vehicles turning at the
     headlands need ~0.01-0.1; the random-walk targets of Case 2 change velocity by ~1 m/s each
@@ -39,8 +42,15 @@ class FusionConfig:
     ``reset_after``: re-initialise a track from the measurements when every measurement of it was
     gated out on this many consecutive updates (a lost track cannot recover through the gate),
     ``None`` never.
+
+    ``robust`` only: ``huber_threshold`` ``k^2``, the squared Mahalanobis distance beyond which
+    an innovation's weight falls as ``k / d``; ``decorrelate`` inflates each pair's ``R`` by its
+    effective-sample-size factor ``(1 + phi) / (1 - phi)``, with ``phi`` the pair's lag-1
+    innovation autocorrelation (EMA rate ``autocorrelation_rate`` per update, clipped to
+    ``[0, max_autocorrelation]``).
     """
 
+    method: str = "robust"
     motion: Literal["constant_velocity", "coordinated_turn"] = "constant_velocity"
     acceleration_psd: float = 0.1
     turn_rate_psd: float = 0.01
@@ -51,8 +61,16 @@ class FusionConfig:
     noise_floor_std: float = 0.05
     gate: float | None = CHI2_2DOF_99
     reset_after: int | None = 5
+    huber_threshold: float = CHI2_2DOF_99
+    decorrelate: bool = False
+    autocorrelation_rate: float = 0.02
+    max_autocorrelation: float = 0.9
 
     def __post_init__(self) -> None:
+        if self.method not in FUSION_METHODS:
+            raise ValueError(
+                f"method: unknown fusion method {self.method!r} ({', '.join(FUSION_METHODS)})"
+            )
         if self.motion not in ("constant_velocity", "coordinated_turn"):
             raise ValueError(
                 f"motion: unknown model {self.motion!r} (constant_velocity, coordinated_turn)"
@@ -63,12 +81,18 @@ class FusionConfig:
             "initial_noise_std",
             "initial_speed_std",
             "noise_floor_std",
+            "huber_threshold",
         ):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
-        if not 0 < self.adaptation_rate <= 1:
-            raise ValueError(f"adaptation_rate: must be in (0, 1], got {self.adaptation_rate}")
+        for name in ("adaptation_rate", "autocorrelation_rate"):
+            if not 0 < getattr(self, name) <= 1:
+                raise ValueError(f"{name}: must be in (0, 1], got {getattr(self, name)}")
+        if not 0 <= self.max_autocorrelation < 1:
+            raise ValueError(
+                f"max_autocorrelation: must be in [0, 1), got {self.max_autocorrelation}"
+            )
         if self.gate is not None and not self.gate > 0:
             raise ValueError(f"gate: must be > 0 (squared Mahalanobis distance), got {self.gate}")
         if self.reset_after is not None and self.reset_after < 1:
@@ -192,26 +216,28 @@ def _inv2(m: np.ndarray) -> np.ndarray:
 class Fuser:
     r"""Cloud-side fusion of every drone's target predictions (SPEC §6).
 
-    One :class:`ExtendedKalmanFilter` per target ``j`` and one :class:`AdaptiveMeasurementNoise`
-    ``R_ij`` per (drone, target) pair. An update at time ``t`` predicts every track from the
-    previous update to ``t``, then, for each drone ``i`` that reported ``j`` (in drone-id
-    order), applies the gated EKF update with ``z_ij`` and ``R_ij``:
+    One filter per target ``j`` (state and covariance of the configured motion model) and one
+    noise ``R_ij`` per (drone, target) pair, owned by the configured
+    :class:`~dronefl.tracking.methods.FusionMethod`. An update at time ``t`` predicts every track
+    from the previous update to ``t``,
 
     .. math::
-        d^2_{ij} = y_{ij}^T S_{ij}^{-1} y_{ij} \le \text{gate} \Rightarrow
-        x_j \leftarrow x_j + K y_{ij},\ P_j \leftarrow (I - KH) P_j (I - KH)^T + K R_{ij} K^T,\
-        R_{ij} \leftarrow \text{EMA}(y_{ij} y_{ij}^T - H P_j^- H^T)
+        x_j^- = f(x_j, \Delta t),\qquad P_j^- = F P_j F^T + Q
 
-    Sequential updates with independent noises equal one joint update with the stacked
-    measurement; each innovation is taken against the estimate the earlier drones left, which is
-    also the prior the adaptation of ``R_ij`` needs.
+    then hands each target's measurements (in drone-id order) to the method, which fuses them
+    with the pairs' adapted ``R`` and gating (``paper``: sequentially; ``robust``: jointly
+    against the common prior, Huber-weighted).
 
     ``target_ids`` / ``drone_ids``: the scenario's ids; ``config``: :class:`FusionConfig`;
     ``initial_positions``: optional ``{target_id: (2,)}`` m to start tracks at ``t0`` (with
     position std ``initial_noise_std``); other targets get a track at their first measurement
     (the mean of that step's positions). Counters: :attr:`rejections` (gated-out measurements),
-    :attr:`resets` (tracks re-initialised after ``reset_after`` all-rejected updates),
-    :attr:`dropped` (non-finite measurements ignored).
+    :attr:`measurements` (all fused or gated ones), :attr:`resets` (tracks re-initialised after
+    ``reset_after`` all-rejected updates), :attr:`dropped` (non-finite measurements ignored).
+
+    With ``record`` (default) every update's prior, transition and posterior are kept, so that
+    :meth:`history` and :meth:`smooth` can give the RTS-smoothed tracks of the whole past at
+    any time (the pseudo-labels of an FL round).
     """
 
     def __init__(
@@ -221,6 +247,7 @@ class Fuser:
         config: FusionConfig | None = None,
         initial_positions: Mapping[int, np.ndarray] | None = None,
         t0: float = 0.0,
+        record: bool = True,
     ) -> None:
         self.config = config or FusionConfig()
         self.target_ids = tuple(int(j) for j in target_ids)
@@ -230,54 +257,59 @@ class Fuser:
         if len(set(self.drone_ids)) != len(self.drone_ids) or not self.drone_ids:
             raise ValueError(f"drone_ids must be non-empty and unique, got {self.drone_ids}")
         self.model = self.config.motion_model()
+        self.method = FUSION_METHODS[self.config.method](
+            self.config, len(self.drone_ids), len(self.target_ids)
+        )
         self.t = float(t0)
-        r0 = self.config.initial_noise_std**2 * np.eye(2)
-        floor = self.config.noise_floor_std**2
-        self._noise = {
-            (i, j): AdaptiveMeasurementNoise(
-                r0, self.config.adaptation_rate, floor, self.config.gate
-            )
-            for i in self.drone_ids
-            for j in self.target_ids
-        }
-        self._filters: dict[int, ExtendedKalmanFilter] = {}
-        self._misses = dict.fromkeys(self.target_ids, 0)
+        self.record = record
+        self._target_index = {j: k for k, j in enumerate(self.target_ids)}
+        self._drone_index = {i: k for k, i in enumerate(self.drone_ids)}
+        n, n_targets = self.model.ndim, len(self.target_ids)
+        self._mean = np.zeros((n_targets, n))
+        self._cov = np.zeros((n_targets, n, n))
+        self._alive = np.zeros(n_targets, dtype=bool)
+        self._misses = np.zeros(n_targets, dtype=int)
         self._last: dict[int, tuple[int, int]] = {}
+        self._history: list[list[tuple]] = [[] for _ in self.target_ids]
+        self._pending: dict[int, tuple] = {}  # this update's (t, prior mean, prior cov, F)
         self.rejections = 0
+        self.measurements = 0
         self.resets = 0
         self.dropped = 0
+        r0 = self.config.initial_noise_std**2 * np.eye(2)
         for j, position in (initial_positions or {}).items():
-            if j not in self.target_ids:
+            if j not in self._target_index:
                 raise ValueError(f"initial_positions: unknown target {j}")
-            self._filters[j] = self._new_filter(np.asarray(position, dtype=float), r0)
+            self._start(self._target_index[j], np.asarray(position, dtype=float), r0, 0)
 
-    def _new_filter(
-        self, position: np.ndarray, position_covariance: np.ndarray
-    ) -> ExtendedKalmanFilter:
+    def _start(self, j: int, position: np.ndarray, position_covariance: np.ndarray, n: int) -> None:
+        """(Re)start target index ``j``'s track at ``position`` (a new history segment)."""
         if position.shape != (2,) or not np.isfinite(position).all():
             raise ValueError(f"a track needs a finite (2,) position, got {position}")
         mean, cov = self.model.initial(position, position_covariance, self.config.initial_speed_std)
-        return ExtendedKalmanFilter(self.model, mean, cov, gate=self.config.gate)
+        self._mean[j], self._cov[j], self._alive[j], self._misses[j] = mean, cov, True, 0
+        if self.record:
+            self._history[j].append((self.t, mean, cov, None, mean, cov, n))
 
     def measurement_noise(self, drone_id: int, target_id: int) -> np.ndarray:
         """The current (adapted) ``R`` ``(2, 2)`` m^2 of the pair."""
-        return self._noise[(drone_id, target_id)].covariance.copy()
+        return self.method.noise()[self._drone_index[drone_id], self._target_index[target_id]]
 
     @property
     def tracks(self) -> dict[int, Track]:
         """Current track of every target that has one, by target id."""
         out = {}
-        for j in self.target_ids:
-            ekf = self._filters.get(j)
-            if ekf is None:
+        for k, j in enumerate(self.target_ids):
+            if not self._alive[k]:
                 continue
             accepted, rejected = self._last.get(j, (0, 0))
+            mean = self._mean[k].copy()
             out[j] = Track(
                 j,
                 self.t,
-                ekf.mean.copy(),
-                ekf.covariance.copy(),
-                self.model.velocity(ekf.mean),
+                mean,
+                self._cov[k].copy(),
+                self.model.velocity(mean),
                 accepted,
                 rejected,
             )
@@ -293,28 +325,60 @@ class Fuser:
         if not t >= self.t:
             raise ValueError(f"update time {t} s is before the last update at {self.t} s")
         by_target = self._group(measurements)
-        for ekf in self._filters.values():
-            ekf.predict(t - self.t)
+        self._predict(t - self.t)
         self.t = float(t)
         self._last = {}
-        for j in self.target_ids:
-            group = by_target.get(j, [])
-            if j not in self._filters:
-                if group:
-                    self._birth(j, group)
-                continue
-            if group:
-                self._fuse(j, group)
+        for j, group in by_target.items():
+            drones = np.array([d for d, _ in group])
+            positions = np.array([p for _, p in group])
+            if self._alive[j]:
+                self._fuse(j, drones, positions)
+            else:
+                self._birth(j, drones, positions)
+        if self.record:
+            for j in np.flatnonzero(self._alive):
+                if j not in by_target:
+                    row = (self._mean[j].copy(), self._cov[j].copy(), 0)
+                    self._history[j].append(self._pending[j] + row)
         return self.tracks
+
+    def _predict(self, dt: float) -> None:
+        """Propagate every live track ``dt`` s; keeps each prior for the history."""
+        self._pending = {}
+        alive = np.flatnonzero(self._alive)
+        if dt == 0 or alive.size == 0:
+            for j in alive:
+                f = np.eye(self.model.ndim)
+                self._pending[j] = (self.t, self._mean[j].copy(), self._cov[j].copy(), f)
+            return
+        if isinstance(self.model, ConstantVelocity):  # linear: one F and Q for every track
+            f = self.model.transition_matrix(dt)
+            q = self.model.process_noise(self._mean[0], dt)
+            self._mean[alive] = self._mean[alive] @ f.T
+            self._cov[alive] = f @ self._cov[alive] @ f.T + q
+            jacobians = [f] * alive.size
+        else:
+            jacobians = []
+            for j in alive:
+                x = self._mean[j]
+                f = self.model.jacobian(x, dt)
+                jacobians.append(f)
+                self._cov[j] = f @ self._cov[j] @ f.T + self.model.process_noise(x, dt)
+                self._mean[j] = self.model.transition(x, dt)
+        t = self.t + dt
+        for j, f in zip(alive, jacobians, strict=True):
+            self._pending[j] = (t, self._mean[j].copy(), self._cov[j].copy(), f)
 
     def _group(
         self, measurements: Sequence[PositionMeasurement]
-    ) -> dict[int, list[PositionMeasurement]]:
+    ) -> dict[int, list[tuple[int, np.ndarray]]]:
+        """``{target index: [(drone index, position (2,)), ...]}`` in drone-id order."""
         seen: set[tuple[int, int]] = set()
-        by_target: dict[int, list[PositionMeasurement]] = {}
+        by_target: dict[int, list[tuple[int, np.ndarray]]] = {}
         for m in measurements:
             pair = (m.drone_id, m.target_id)
-            if pair not in self._noise:
+            i, j = self._drone_index.get(m.drone_id), self._target_index.get(m.target_id)
+            if i is None or j is None:
                 raise ValueError(
                     f"measurement from drone {m.drone_id} of target {m.target_id}: unknown id "
                     f"(drones {self.drone_ids}, targets {self.target_ids})"
@@ -331,54 +395,80 @@ class Fuser:
             if not np.isfinite(position).all():
                 self.dropped += 1
                 continue
-            by_target.setdefault(m.target_id, []).append(m)
+            by_target.setdefault(j, []).append((i, position))
         for group in by_target.values():
-            group.sort(key=lambda m: m.drone_id)  # a fixed order makes runs reproducible
+            group.sort(key=lambda m: m[0])  # a fixed order makes runs reproducible
         return by_target
 
-    def _birth(self, j: int, group: list[PositionMeasurement]) -> None:
-        """Start (or restart) target ``j``'s track at the mean of ``group``'s positions; its
+    def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
+        """Start (or restart) target ``j``'s track at the mean of ``positions``; its
         covariance is that of the mean of independent measurements, ``(sum_i R_ij^-1)^-1``."""
-        positions = np.array([m.position for m in group], dtype=float)
-        info = sum(np.linalg.inv(self._noise[(m.drone_id, j)].covariance) for m in group)
-        self._filters[j] = self._new_filter(positions.mean(axis=0), np.linalg.inv(info))
-        self._misses[j] = 0
-        self._last[j] = (len(group), 0)
+        noise = self.method.noise()[drones, j]
+        info = np.linalg.inv(noise).sum(axis=0)
+        self._start(j, positions.mean(axis=0), np.linalg.inv(info), len(drones))
+        self._last[self.target_ids[j]] = (len(drones), 0)
 
-    def _fuse(self, j: int, group: list[PositionMeasurement]) -> None:
-        ekf = self._filters[j]
-        accepted = 0
-        for m in group:
-            noise = self._noise[(m.drone_id, j)]
-            diagnostics = ekf.update(np.asarray(m.position, dtype=float), noise.covariance)
-            if diagnostics.accepted:
-                accepted += 1
-                if self.config.adaptive:
-                    noise.observe(diagnostics)
-        rejected = len(group) - accepted
+    def _fuse(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
+        result = self.method.update(j, drones, self._mean[j], self._cov[j], positions)
+        self._mean[j], self._cov[j] = result.mean, result.covariance
+        accepted = int(result.accepted.sum())
+        rejected = len(drones) - accepted
+        self.measurements += len(drones)
         self.rejections += rejected
-        self._last[j] = (accepted, rejected)
+        target_id = self.target_ids[j]
+        self._last[target_id] = (accepted, rejected)
         self._misses[j] = self._misses[j] + 1 if accepted == 0 else 0
         if self.config.reset_after is not None and self._misses[j] >= self.config.reset_after:
             self.resets += 1
-            self._birth(j, group)
-            self._last[j] = (0, rejected)
+            self._birth(j, drones, positions)
+            self._last[target_id] = (0, rejected)
+        elif self.record:
+            row = (self._mean[j].copy(), self._cov[j].copy(), accepted)
+            self._history[j].append(self._pending[j] + row)
+
+    def history(self, target_id: int) -> TrackHistory | None:
+        """The recorded forward pass of ``target_id``'s track (``None`` before its birth)."""
+        if not self.record:
+            raise ValueError("this Fuser was made with record=False: it keeps no history")
+        rows = self._history[self._target_index[target_id]]
+        if not rows:
+            return None
+        n = self.model.ndim
+        eye = np.eye(n)
+        return TrackHistory(
+            target_id=target_id,
+            t=np.array([r[0] for r in rows]),
+            prior_mean=np.array([r[1] for r in rows]),
+            prior_covariance=np.array([r[2] for r in rows]),
+            transition=np.array([eye if r[3] is None else r[3] for r in rows]),
+            mean=np.array([r[4] for r in rows]),
+            covariance=np.array([r[5] for r in rows]),
+            start=np.array([r[3] is None for r in rows]),
+            accepted=np.array([r[6] for r in rows], dtype=int),
+        )
+
+    def smooth(self) -> dict[int, SmoothedTrack]:
+        """The RTS-smoothed track (:func:`~dronefl.tracking.smoother.rts_smooth`) of every
+        target that has a history, over all updates so far."""
+        out = {}
+        for j in self.target_ids:
+            history = self.history(j)
+            if history is not None:
+                out[j] = rts_smooth(history)
+        return out
 
     def forecast(self, dt: float) -> TrackForecast:
         """The planner's view (:class:`TrackForecast`) of the tracked targets, with the
         covariance propagated ``dt`` s (one planning step) ahead of the current tracks."""
         if not dt > 0:
             raise ValueError(f"forecast needs dt > 0 s, got {dt}")
-        ids = tuple(j for j in self.target_ids if j in self._filters)
+        index = np.flatnonzero(self._alive)
+        ids = tuple(self.target_ids[k] for k in index)
         n = self.model.ndim
-        positions = np.zeros((len(ids), 2))
+        positions = self._mean[index, :2].copy()
         predicted = np.zeros((len(ids), n, n))
-        for k, j in enumerate(ids):
-            ekf = self._filters[j]
-            f = self.model.jacobian(ekf.mean, dt)
-            positions[k] = ekf.mean[:2]
-            predicted[k] = f @ ekf.covariance @ f.T + self.model.process_noise(ekf.mean, dt)
-        noise = np.array(
-            [[self._noise[(i, j)].covariance for j in ids] for i in self.drone_ids]
-        ).reshape(len(self.drone_ids), len(ids), 2, 2)
+        for row, k in enumerate(index):
+            f = self.model.jacobian(self._mean[k], dt)
+            predicted[row] = f @ self._cov[k] @ f.T + self.model.process_noise(self._mean[k], dt)
+        noise = self.method.noise()[:, index]
         return TrackForecast(ids, self.drone_ids, positions, predicted, noise)
