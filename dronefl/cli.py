@@ -467,6 +467,63 @@ def pretrain(
     typer.echo(f"wrote {out}/case{case}/(dronefl|centralized)/checkpoint.npz")
 
 
+@app.command()
+def replay(
+    episode: Annotated[Path, typer.Argument(help="A `dronefl track` folder (episode.npz).")],
+    method: Annotated[str, typer.Option(help="Fusion method: robust|paper.")] = "robust",
+    acceleration_psd: Annotated[
+        float | None, typer.Option(help="Process noise q, m^2/s^3 (default: the scenario's).")
+    ] = None,
+    motion: Annotated[str, typer.Option(help="constant_velocity|coordinated_turn")] = (
+        "constant_velocity"
+    ),
+    adaptive: Annotated[bool, typer.Option(help="Adapt R per (drone, target).")] = True,
+    gate: Annotated[float, typer.Option(help="Squared Mahalanobis gate; 0: no gating.")] = 9.21,
+    huber_threshold: Annotated[float, typer.Option(help="Huber k^2 (robust).")] = 9.21,
+    error_autocorrelation: Annotated[
+        float | None, typer.Option(help="Lag-1 error autocorrelation (robust; default: tuned).")
+    ] = None,
+    labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
+    max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
+        None
+    ),
+) -> None:
+    """Re-fuse and smooth an episode's recorded predictions with other fusion settings; print,
+    per target, each drone's prediction MSE beside the fused track's and the labels'.
+
+    Example: dronefl replay runs/c2 --method paper --out runs/c2/replay_paper
+    """
+    from dronefl.experiments.replay import (
+        EpisodeError,
+        format_result,
+        load_episode,
+        replay_config,
+        write_result,
+    )
+    from dronefl.experiments.replay import replay as run
+
+    try:
+        recorded = load_episode(episode)
+        config = replay_config(
+            recorded.scenario,
+            method=method,
+            motion=motion,
+            acceleration_psd=acceleration_psd,
+            adaptive=adaptive,
+            gate=gate if gate > 0 else None,
+            huber_threshold=huber_threshold,
+            error_autocorrelation=error_autocorrelation,
+        )
+        result = run(recorded, config, labels=labels, max_std=max_std)
+    except (EpisodeError, ValueError) as exc:
+        raise fail(str(exc)) from None
+    typer.echo(format_result(result))
+    if out is not None:
+        write_result(result, out)
+        typer.echo(f"wrote {out}/ (replay.json, replay.md)")
+
+
 app.command("bench")(bench_command)
 
 

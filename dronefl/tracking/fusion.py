@@ -62,9 +62,10 @@ class FusionConfig:
     gate: float | None = CHI2_2DOF_99
     reset_after: int | None = 5
     huber_threshold: float = CHI2_2DOF_99
-    decorrelate: bool = False
-    autocorrelation_rate: float = 0.02
-    max_autocorrelation: float = 0.9
+    error_autocorrelation: float = 0.0
+    consensus_gate: bool = True
+    fading: bool = True
+    noise_estimate: str = "consensus"
 
     def __post_init__(self) -> None:
         if self.method not in FUSION_METHODS:
@@ -86,12 +87,16 @@ class FusionConfig:
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
-        for name in ("adaptation_rate", "autocorrelation_rate"):
-            if not 0 < getattr(self, name) <= 1:
-                raise ValueError(f"{name}: must be in (0, 1], got {getattr(self, name)}")
-        if not 0 <= self.max_autocorrelation < 1:
+        if not 0 < self.adaptation_rate <= 1:
+            raise ValueError(f"adaptation_rate: must be in (0, 1], got {self.adaptation_rate}")
+        if not 0 <= self.error_autocorrelation < 1:
             raise ValueError(
-                f"max_autocorrelation: must be in [0, 1), got {self.max_autocorrelation}"
+                f"error_autocorrelation: must be in [0, 1), got {self.error_autocorrelation}"
+            )
+        if self.noise_estimate not in ("consensus", "innovation", "grubbs"):
+            raise ValueError(
+                f"noise_estimate: {self.noise_estimate!r} is not one of consensus, innovation, "
+                "grubbs"
             )
         if self.gate is not None and not self.gate > 0:
             raise ValueError(f"gate: must be > 0 (squared Mahalanobis distance), got {self.gate}")

@@ -94,9 +94,7 @@ class SmoothedLabels(LabelSource):
     name = "smoothed"
 
     def labels(self, fuser: Fuser, t: np.ndarray, truth: np.ndarray | None) -> Labels:
-        tracks = {
-            j: (s.t, s.position, s.position_covariance) for j, s in fuser.smooth().items()
-        }
+        tracks = {j: (s.t, s.position, s.position_covariance) for j, s in fuser.smooth().items()}
         return self._from_tracks(fuser, t, tracks)
 
 

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.special import gammainc
 
-from dronefl.tracking.adaptive import AdaptiveMeasurementNoise, floor_eigenvalues
+from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
 from dronefl.tracking.ekf import position_update
 
 if TYPE_CHECKING:
@@ -157,104 +157,221 @@ class RobustAdaptive(FusionMethod):
 
     For target ``j`` with prior ``x^-, P^-`` (``A = H P^- H^T``) and the step's measurements
     ``z_i`` of its drones, every innovation is taken against the same prior, so the order of
-    the drones does not matter (the first drone cannot capture the track):
+    the drones does not matter (the first drone cannot capture the track).
+
+    *Correlated errors.* A drone's prediction errors persist over many steps (lag-1
+    autocorrelation ``phi`` ~0.85 at 5 Hz), so ``n`` of its measurements carry the information
+    of only ``n (1 - phi) / (1 + phi)`` independent ones. Every update therefore uses
+    ``	ilde R_i = R_i (1 + phi) / (1 - phi)`` (``error_autocorrelation``), which keeps ``P``
+    honest instead of shrinking it as if the errors were white.
+
+    *Outliers, not lagging tracks.* With two or more drones, a measurement is judged against
+    the others, not against the prior: its leave-one-out residual
+    ``r_i = z_i - ar z_{-i}`` (``ar z_{-i}`` the information-weighted mean of the other
+    drones' positions, covariance ``ar R_{-i}``) gives ``d_i^2 = r_i^T (	ilde R_i +
+    ar R_{-i})^{-1} r_i``. Beyond ``k^2 = huber_threshold`` the measurement's weight falls as
+    ``w_i = k / d_i`` (Huber); beyond the gate it is rejected (of two drones that disagree, the
+    one farther from the prior). A lone measurement is judged by its innovation
+    ``y_i^T (A + 	ilde R_i)^{-1} y_i`` as in the paper. If the weighted consensus itself lies
+    outside the gate of the prior, the track is lagging: ``P^-`` is inflated by
+    ``\lambda = d^2 / g`` (a fading factor) so the update follows the drones instead of the
+    gate rejecting all of them.
+
+    *Update.* The joint update with noises ``	ilde R_i / w_i`` is one update with
 
     .. math::
-        y_i = z_i - H x^-,\quad S_i = A + \tilde R_i,\quad d_i^2 = y_i^T S_i^{-1} y_i,\quad
-        w_i = \min(1, k / d_i),\ \text{and } w_i = 0 \text{ if } d_i^2 > g
+        \Lambda = \sum_i w_i 	ilde R_i^{-1},\quad ar R = \Lambda^{-1},\quad
+        ar y = ar R \sum_i w_i 	ilde R_i^{-1} y_i,\quad
+        K = P^- H^T (A + ar R)^{-1},\quad x^+ = x^- + K ar y
 
-    with ``\tilde R_i = \rho_i R_i`` the pair's noise inflated by its effective-sample-size
-    factor (below). The joint update with noises ``\tilde R_i / w_i`` is one update with the
-    information-weighted measurement
+    and the Joseph-form covariance.
 
-    .. math::
-        \Lambda = \sum_i w_i \tilde R_i^{-1},\quad \bar R = \Lambda^{-1},\quad
-        \bar y = \bar R \sum_i w_i \tilde R_i^{-1} y_i,\quad
-        K = P^- H^T (A + \bar R)^{-1},\quad x^+ = x^- + K \bar y
-
-    and the Joseph-form covariance. Each accepted pair adapts its ``R`` from its weighted
-    innovation, ``R_i \leftarrow \lfloor (1-\beta) R_i + \beta (w_i y_i y_i^T / c - A)
-    \rfloor``, where ``c`` (:func:`huber_second_moment`) makes the sample unbiased for a
-    consistent filter, so outliers neither move the track much nor blow up ``R``.
-
-    Correlated errors: a drone's errors persist over many steps (lag-5 autocorrelation
-    0.2-0.6), so ``n`` of its measurements carry the information of only about
-    ``n (1 - \phi) / (1 + \phi)`` independent ones (``\phi`` the lag-1 autocorrelation of an
-    AR(1) error). Each pair tracks ``\phi_i`` as an EMA of the product of consecutive whitened
-    innovations, and the update uses ``\tilde R_i = R_i (1 + \phi_i) / (1 - \phi_i)``
-    (``\phi_i`` clipped to ``[0, \phi_{max}]``) with ``config.decorrelate``.
+    *Adaptive R.* With ``noise_estimate = "consensus"`` and two or more drones, ``R_i`` is the
+    EMA of ``w_i r_i r_i^T / c - ar R_{-i}`` (the leave-one-out residual measures the drone's
+    whole error, slow parts included, which the innovation against a prior that has followed
+    the same slow error does not); otherwise, of ``w_i y_i y_i^T / c - A`` (the paper's
+    innovation form). ``c`` (:func:`huber_second_moment`) makes the sample unbiased for
+    Gaussian errors; the eigenvalue floor keeps ``R`` positive definite.
     """
 
     def __init__(self, config: FusionConfig, n_drones: int, n_targets: int) -> None:
         super().__init__(config, n_drones, n_targets)
-        self._r = np.broadcast_to(
-            config.initial_noise_std**2 * np.eye(2), (n_drones, n_targets, 2, 2)
-        ).copy()
+        r0 = config.initial_noise_std**2
+        # R_ij as (xx, xy, yy) floats: the 2 x 2 algebra below runs on Python floats, which
+        # costs a fraction of numpy's per-call overhead at this size.
+        self._r = [[(r0, 0.0, r0) for _ in range(n_targets)] for _ in range(n_drones)]
         self._floor = config.noise_floor_std**2
         self._c = huber_second_moment(config.huber_threshold, config.gate)
-        self._white = np.full((n_drones, n_targets, 2), np.nan)  # last whitened innovation
-        self._energy = np.ones((n_drones, n_targets))  # EMA of the squared whitened innovation
-        self._lag = np.zeros((n_drones, n_targets))  # EMA of its lag-1 product
-        self._phi = np.zeros((n_drones, n_targets))  # lag-1 autocorrelation, lag / energy
+        phi = config.error_autocorrelation
+        self._inflation = (1.0 + phi) / (1.0 - phi)
 
     def noise(self) -> np.ndarray:
-        return self._inflated(np.arange(self.n_drones)[:, None], np.arange(self.n_targets))
-
-    def _inflated(self, drones: np.ndarray, target: np.ndarray | int) -> np.ndarray:
-        r = self._r[drones, target]
-        if not self.config.decorrelate:
-            return r.copy()
-        phi = np.clip(self._phi[drones, target], 0.0, self.config.max_autocorrelation)
-        return r * ((1.0 + phi) / (1.0 - phi))[..., None, None]
+        out = np.empty((self.n_drones, self.n_targets, 2, 2))
+        for i, row in enumerate(self._r):
+            for j, (xx, xy, yy) in enumerate(row):
+                out[i, j] = ((xx, xy), (xy, yy))
+        return out * self._inflation
 
     def update(self, target, drones, mean, covariance, positions) -> TargetUpdate:
         config = self.config
-        a = covariance[:2, :2]  # H P^- H^T
-        r = self._inflated(drones, target)  # (m, 2, 2)
-        y = positions - mean[:2]  # (m, 2)
-        s_inv = _inv2(a + r)
-        nis = np.einsum("mi,mij,mj->m", y, s_inv, y)
-        weight = huber_weight(nis, config.huber_threshold)
-        accepted = np.ones(len(drones), dtype=bool) if config.gate is None else nis <= config.gate
-        weight = np.where(accepted, weight, 0.0)
-        if accepted.any():
-            info = weight[:, None, None] * _inv2(r)  # w_i R_i^-1, (m, 2, 2)
-            r_bar = _inv2(info.sum(axis=0))
-            y_bar = r_bar @ np.einsum("mij,mj->i", info, y)
-            s_bar_inv = _inv2(a + r_bar)
-            k = covariance[:, :2] @ s_bar_inv  # (n, 2)
+        gate = math.inf if config.gate is None else config.gate
+        k2 = config.huber_threshold
+        inflation = self._inflation
+        m = len(drones)
+        ax, axy, ay = covariance[0, 0], covariance[0, 1], covariance[1, 1]  # A = H P^- H^T
+        px, py = mean[0], mean[1]
+        z = positions.tolist()
+        r = [tuple(v * inflation for v in self._r[i][target]) for i in drones.tolist()]
+        info = [_inv_sym(*ri) for ri in r]  # R_i^-1
+        y = [(zi[0] - px, zi[1] - py) for zi in z]
+        prior_nis = [
+            _quad(yi, _inv_sym(ax + ri[0], axy + ri[1], ay + ri[2]))
+            for yi, ri in zip(y, r, strict=True)
+        ]
+        residual = rest = None
+        if m >= 2 and config.consensus_gate:
+            accepted, nis, residual, rest = _consensus_gate(z, r, info, prior_nis, gate)
+        else:
+            nis = prior_nis
+            accepted = [d <= gate for d in nis]
+        weight = [
+            (1.0 if d <= k2 else math.sqrt(k2 / d)) if ok else 0.0
+            for d, ok in zip(nis, accepted, strict=True)
+        ]
+        if any(accepted):
+            lx = lxy = ly = bx = by = 0.0  # Lambda = sum w R^-1, b = sum w R^-1 y
+            for w, (ix, ixy, iy), (yx, yy) in zip(weight, info, y, strict=True):
+                lx, lxy, ly = lx + w * ix, lxy + w * ixy, ly + w * iy
+                bx, by = bx + w * (ix * yx + ixy * yy), by + w * (ixy * yx + iy * yy)
+            rbx, rbxy, rby = _inv_sym(lx, lxy, ly)  # R_bar
+            ybar = (rbx * bx + rbxy * by, rbxy * bx + rby * by)
+            s_inv = _inv_sym(ax + rbx, axy + rbxy, ay + rby)
+            fused_nis = _quad(ybar, s_inv)
+            if config.fading and fused_nis > gate:  # a lagging track: trust the drones
+                covariance = covariance * min(fused_nis / gate, MAX_FADING)
+                ax, axy, ay = covariance[0, 0], covariance[0, 1], covariance[1, 1]
+                s_inv = _inv_sym(ax + rbx, axy + rbxy, ay + rby)
+            k = covariance[:, :2] @ np.array(((s_inv[0], s_inv[1]), (s_inv[1], s_inv[2])))
             i_kh = np.eye(len(mean))
             i_kh[:, :2] -= k
-            mean = mean + k @ y_bar
+            r_bar = np.array(((rbx, rbxy), (rbxy, rby)))
+            mean = mean + k @ ybar
             covariance = i_kh @ covariance @ i_kh.T + k @ r_bar @ k.T
         if config.adaptive:
-            self._adapt(target, drones, y, a, s_inv, weight, accepted)
-        return TargetUpdate(mean, covariance, accepted)
+            self._adapt(target, drones, y, (ax, axy, ay), residual, rest, weight, accepted)
+        return TargetUpdate(mean, covariance, np.array(accepted, dtype=bool))
 
-    def _adapt(self, target, drones, y, a, s_inv, weight, accepted) -> None:
+    def _adapt(self, target, drones, y, a, residual, rest, weight, accepted) -> None:
         beta = self.config.adaptation_rate
-        for k in np.flatnonzero(accepted):
-            i = drones[k]
-            sample = weight[k] * np.outer(y[k], y[k]) / self._c - a
-            blended = (1.0 - beta) * self._r[i, target] + beta * sample
-            self._r[i, target] = floor_eigenvalues(blended, self._floor)
-        if not self.config.decorrelate:
-            return
-        # Whitened innovations (per axis, by the diagonal of S) and their products with the
-        # pair's previous ones: the ratio of the two EMAs estimates the lag-1 autocorrelation.
-        scale = np.sqrt(np.diagonal(s_inv, axis1=1, axis2=2))  # (m, 2)
-        white = np.clip(y * scale, -3.0, 3.0)
-        rate = self.config.autocorrelation_rate
-        previous = self._white[drones, target]
-        seen = np.isfinite(previous).all(axis=1)
-        energy = (white**2).mean(axis=1)
-        product = np.where(seen, (white * np.nan_to_num(previous)).mean(axis=1), 0.0)
-        self._energy[drones, target] += rate * (energy - self._energy[drones, target])
-        lag = self._lag[drones, target]
-        self._lag[drones, target] = np.where(seen, lag + rate * (product - lag), lag)
-        self._phi[drones, target] = self._lag[drones, target] / self._energy[drones, target]
-        self._white[drones, target] = white
+        estimate = self.config.noise_estimate if residual is not None else "innovation"
+        scale = 1.0 / (self._c * self._inflation)  # R_i is kept without the inflation
+        for row, i in enumerate(drones.tolist()):
+            if not accepted[row]:
+                continue
+            w = weight[row] * scale
+            (yx, yy) = y[row]
+            if estimate == "innovation":  # y y^T - A
+                base = a
+                sample = (w * yx * yx, w * yx * yy, w * yy * yy)
+            else:
+                (ex, ey) = residual[row]
+                if estimate == "consensus":  # r r^T - R_-i
+                    base = rest[row]
+                    sample = (w * ex * ex, w * ex * ey, w * ey * ey)
+                else:  # three-cornered hat: sym(y r^T), no subtraction
+                    base = (0.0, 0.0, 0.0)
+                    sample = (w * yx * ex, 0.5 * w * (yx * ey + yy * ex), w * yy * ey)
+            sample = tuple(v - b / self._inflation for v, b in zip(sample, base, strict=True))
+            old = self._r[i][target]
+            self._r[i][target] = _floor_sym(
+                *((1.0 - beta) * o + beta * v for o, v in zip(old, sample, strict=True)),
+                self._floor,
+            )
 
+
+def _inv_sym(xx: float, xy: float, yy: float) -> tuple[float, float, float]:
+    """Inverse of the symmetric ``[[xx, xy], [xy, yy]]`` as ``(xx, xy, yy)``."""
+    det = xx * yy - xy * xy
+    return yy / det, -xy / det, xx / det
+
+
+def _quad(v: tuple[float, float], m: tuple[float, float, float]) -> float:
+    """``v^T M v`` for a symmetric ``M = (xx, xy, yy)``."""
+    return m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1]
+
+
+def _floor_sym(xx: float, xy: float, yy: float, floor: float) -> tuple[float, float, float]:
+    """:func:`~dronefl.tracking.adaptive.floor_eigenvalues` of ``[[xx, xy], [xy, yy]]``, in
+    closed form (the eigenvalues of a symmetric 2 x 2 are ``mid -+ sqrt(half^2 + xy^2)``)."""
+    mid, half = 0.5 * (xx + yy), 0.5 * (xx - yy)
+    radius = math.hypot(half, xy)
+    low, high = mid - radius, mid + radius
+    if low >= floor:
+        return xx, xy, yy
+    if radius == 0.0:
+        return floor, 0.0, floor
+    # eigenvector of the larger eigenvalue: (cos t, sin t) with tan 2t = 2 xy / (xx - yy)
+    c2, s2 = half / radius, xy / radius  # cos 2t, sin 2t
+    high, low = max(high, floor), floor
+    mid, half = 0.5 * (high + low), 0.5 * (high - low)
+    return mid + half * c2, half * s2, mid - half * c2
+
+
+def _consensus_gate(z, r, info, prior_nis, gate):
+    """Gate measurements against each other: while some leave-one-out residual's ``d^2``
+    exceeds ``gate``, reject the worst and recompute among the rest (a single wild drone must not
+    drag the others' residuals out of the gate); a last survivor is judged against the prior.
+    Returns ``(accepted, d^2, residuals, residual covariances)`` per measurement (residuals and
+    their covariances from the final set; rejected ones keep their last values)."""
+    m = len(z)
+    alive = list(range(m))
+    accepted, nis = [False] * m, list(prior_nis)
+    residual, rest = [(0.0, 0.0)] * m, [(0.0, 0.0, 0.0)] * m
+    while len(alive) >= 2:
+        res, cov = _leave_one_out([z[k] for k in alive], [info[k] for k in alive])
+        d2 = []
+        for k, e, c in zip(alive, res, cov, strict=True):
+            rk = r[k]
+            residual[k], rest[k] = e, c
+            d2.append(_quad(e, _inv_sym(rk[0] + c[0], rk[1] + c[1], rk[2] + c[2])))
+        worst = max(range(len(alive)), key=d2.__getitem__)
+        if d2[worst] <= gate:
+            for k, d in zip(alive, d2, strict=True):
+                accepted[k], nis[k] = True, d
+            return accepted, nis, residual, rest
+        if len(alive) == 2:  # two that disagree: keep the one nearer the prior
+            worst = max((0, 1), key=lambda a: prior_nis[alive[a]])
+        nis[alive[worst]] = d2[worst]
+        alive.pop(worst)
+    last = alive[0]
+    accepted[last] = prior_nis[last] <= gate
+    return accepted, nis, None if sum(accepted) < 2 else residual, rest
+
+
+def _leave_one_out(
+    z: list, info: list[tuple[float, float, float]]
+) -> tuple[list[tuple[float, float]], list[tuple[float, float, float]]]:
+    """Each measurement's residual from the information-weighted mean of the others,
+    ``r_i = z_i - \bar z_{-i}`` (m), and that mean's covariance ``\bar R_{-i}`` (m^2),
+    from positions ``z`` ``[(x, y), ...]`` and information matrices ``R_i^-1`` (``m >= 2``)."""
+    tx = sum(v[0] for v in info)
+    txy = sum(v[1] for v in info)
+    ty = sum(v[2] for v in info)
+    wz = [
+        (v[0] * p[0] + v[1] * p[1], v[1] * p[0] + v[2] * p[1]) for v, p in zip(info, z, strict=True)
+    ]
+    sx, sy = sum(w[0] for w in wz), sum(w[1] for w in wz)
+    residuals, rests = [], []
+    for v, w, p in zip(info, wz, z, strict=True):
+        rx, rxy, ry = _inv_sym(tx - v[0], txy - v[1], ty - v[2])
+        cx, cy = sx - w[0], sy - w[1]
+        residuals.append((p[0] - (rx * cx + rxy * cy), p[1] - (rxy * cx + ry * cy)))
+        rests.append((rx, rxy, ry))
+    return residuals, rests
+
+
+#: Largest fading factor applied to a lagging track's prior covariance in one update.
+MAX_FADING = 2.0
 
 #: Fusion methods by name (``FusionConfig.method``).
 FUSION_METHODS: dict[str, type[FusionMethod]] = {

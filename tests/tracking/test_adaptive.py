@@ -60,10 +60,10 @@ def test_truncation_factor_of_the_99_percent_gate():
 def test_adaptive_r_converges_toward_the_true_noise_of_each_drone():
     # Prepare: one target moving as the filter's motion model says (white acceleration of the
     # configured PSD), seen by a precise drone 1 and a noisy drone 2 with correlated errors;
-    # both start from R = I.
+    # both start from R = I. The paper's sequential method with the innovation form.
     rng = np.random.default_rng(11)
     true_r = {1: np.diag([0.25, 0.09]), 2: np.array([[4.0, 1.0], [1.0, 2.0]])}
-    config = FusionConfig(acceleration_psd=0.01, adaptation_rate=0.02)
+    config = FusionConfig(method="paper", acceleration_psd=0.01, adaptation_rate=0.02)
     fuser = Fuser([1], [1, 2], config, initial_positions={1: np.zeros(2)})
     f, q = fuser.model.jacobian(np.zeros(4), 0.2), fuser.model.process_noise(np.zeros(4), 0.2)
     state = np.array([0.0, 0.0, 0.5, 0.2])
