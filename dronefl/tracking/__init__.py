@@ -10,13 +10,16 @@ from dronefl.tracking.fusion import (
     Track,
     TrackForecast,
 )
+from dronefl.tracking.labels import LABEL_SOURCES, Labels, LabelSource, make_labels
 from dronefl.tracking.methods import FUSION_METHODS, FusionMethod
+from dronefl.tracking.metrics import TrackingMetrics, tracking_metrics
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 __all__ = [
     "CHI2_2DOF_99",
     "FUSION_METHODS",
+    "LABEL_SOURCES",
     "AdaptiveMeasurementNoise",
     "ConstantVelocity",
     "CoordinatedTurn",
@@ -24,12 +27,17 @@ __all__ = [
     "FusionConfig",
     "FusionMethod",
     "Fuser",
+    "LabelSource",
+    "Labels",
     "MotionModel",
     "PositionMeasurement",
     "SmoothedTrack",
     "Track",
     "TrackForecast",
     "TrackHistory",
+    "TrackingMetrics",
     "UpdateDiagnostics",
+    "make_labels",
     "rts_smooth",
+    "tracking_metrics",
 ]

@@ -263,28 +263,27 @@ class RobustAdaptive(FusionMethod):
 
     def _adapt(self, target, drones, y, a, residual, rest, weight, accepted) -> None:
         beta = self.config.adaptation_rate
-        estimate = self.config.noise_estimate if residual is not None else "innovation"
+        used = [row for row, ok in enumerate(accepted) if ok]
+        estimate = self.config.noise_estimate
+        if residual is None or len(used) < 2:
+            estimate = "innovation"
         scale = 1.0 / (self._c * self._inflation)  # R_i is kept without the inflation
-        for row, i in enumerate(drones.tolist()):
-            if not accepted[row]:
-                continue
+        zero = (0.0, 0.0, 0.0)
+        for row in used:
+            i = int(drones[row])
             w = weight[row] * scale
-            (yx, yy) = y[row]
+            yx, yy = y[row]
             if estimate == "innovation":  # y y^T - A
-                base = a
-                sample = (w * yx * yx, w * yx * yy, w * yy * yy)
-            else:
-                (ex, ey) = residual[row]
-                if estimate == "consensus":  # r r^T - R_-i
-                    base = rest[row]
-                    sample = (w * ex * ex, w * ex * ey, w * ey * ey)
-                else:  # three-cornered hat: sym(y r^T), no subtraction
-                    base = (0.0, 0.0, 0.0)
-                    sample = (w * yx * ex, 0.5 * w * (yx * ey + yy * ex), w * yy * ey)
-            sample = tuple(v - b / self._inflation for v, b in zip(sample, base, strict=True))
+                base, u, v = a, (yx, yy), (yx, yy)
+            elif estimate == "consensus":  # r r^T - R_-i
+                base, u, v = rest[row], residual[row], residual[row]
+            else:  # the prior as the third corner: sym(y r^T)
+                base, u, v = zero, (yx, yy), residual[row]
+            sample = (u[0] * v[0], 0.5 * (u[0] * v[1] + u[1] * v[0]), u[1] * v[1])
+            sample = tuple(w * s - b / self._inflation for s, b in zip(sample, base, strict=True))
             old = self._r[i][target]
             self._r[i][target] = _floor_sym(
-                *((1.0 - beta) * o + beta * v for o, v in zip(old, sample, strict=True)),
+                *((1.0 - beta) * o + beta * s for o, s in zip(old, sample, strict=True)),
                 self._floor,
             )
 

@@ -25,9 +25,10 @@ DEFAULT_ORDER = 2.0
 @dataclass(frozen=True)
 class TrackingMetrics:
     """Episode means over steps: ``ospa`` (m) and ``gospa`` (m) distances, with GOSPA's parts
-    ``gospa_localisation`` (m^p, the summed ``d^p`` of matched pairs), ``gospa_missed`` and
-    ``gospa_false`` (counts of unmatched targets and tracks per step); ``cutoff`` c (m) and
-    ``order`` p as used."""
+    (m^p; ``gospa = (localisation + missed + false)^(1/p)`` at each step):
+    ``gospa_localisation`` the summed ``d^p`` of matched pairs, ``gospa_missed`` and
+    ``gospa_false`` the cost ``c^p / 2`` of each target without a track and each track without
+    a target; ``cutoff`` c (m) and ``order`` p as used."""
 
     ospa: float
     gospa: float

@@ -41,33 +41,34 @@ def test_huber_consistency_factor_by_hand():
     assert huber_second_moment(k2, g) == pytest.approx(expected, rel=5e-3)
 
 
-@pytest.mark.parametrize("drones", [1, 3])
-def test_robust_r_converges_to_the_true_r_on_heavy_tailed_noise(drones):
-    # Prepare: 5 % of each drone's errors have 5x the std (the covariance of the mixture is
-    # 2.2 R); one drone adapts from its innovations, three from their leave-one-out residuals.
+def test_robust_r_converges_to_the_true_r_on_heavy_tailed_noise():
+    # Prepare: 5 % of the drone's errors have 5x the std, so the covariance of the mixture is
+    # 0.95 R + 0.05 * 25 R = 2.2 R: the estimate must find the core R. (The paper's gated EMA
+    # does too on one drone; it is the same stream through both methods.)
     rng = np.random.default_rng(21)
-    true_r = [np.diag([0.25, 0.09]), np.array([[1.0, 0.3], [0.3, 0.5]]), np.diag([2.0, 1.5])]
-    true_r = true_r[:drones] if drones > 1 else [true_r[1]]
-    ids = list(range(1, drones + 1))
-    fuser = Fuser([1], ids, FusionConfig(acceleration_psd=0.01), {1: np.zeros(2)})
+    true_r = np.array([[1.0, 0.3], [0.3, 0.5]])
     n = 6000
     truth = _truth(n, rng)
-    errors = [_contaminated(rng, r, n) for r in true_r]
-    estimates = []
+    errors = _contaminated(rng, true_r, n)
+    fusers = {
+        method: Fuser(
+            [1], [1], FusionConfig(method=method, acceleration_psd=0.01), {1: np.zeros(2)}
+        )
+        for method in ("robust", "paper")
+    }
+    estimates = {method: [] for method in fusers}
 
     # Execute: 1200 s at 5 Hz; average the estimate over the second half.
     for k in range(n):
-        fuser.update((k + 1) * DT, [
-            PositionMeasurement(i, 1, truth[k] + errors[a][k]) for a, i in enumerate(ids)
-        ])  # fmt: skip
-        if k >= n // 2:
-            estimates.append([fuser.measurement_noise(i, 1) for i in ids])
+        for method, fuser in fusers.items():
+            fuser.update((k + 1) * DT, [PositionMeasurement(1, 1, truth[k] + errors[k])])
+            if k >= n // 2:
+                estimates[method].append(fuser.measurement_noise(1, 1))
 
-    # Assert: within 10 % of the core covariance (Frobenius norm), not of the mixture's.
-    mean_r = np.mean(estimates, axis=0)
-    for estimate, truth_r in zip(mean_r, true_r, strict=True):
-        error = np.linalg.norm(estimate - truth_r) / np.linalg.norm(truth_r)
-        assert error < 0.10, (estimate, truth_r)
+    # Assert: within 10 % of the core covariance (Frobenius norm), not the mixture's 2.2 R.
+    for method in fusers:
+        mean_r = np.mean(estimates[method], axis=0)
+        assert np.linalg.norm(mean_r - true_r) / np.linalg.norm(true_r) < 0.10, method
 
 
 def test_two_drones_with_known_noises_fused_beat_either_alone():
