@@ -23,9 +23,9 @@ from rich.console import Console
 from dronefl.bench import bandwidth, closed_loop, cloud, predictor, simulator, vision
 from dronefl.bench.energy import EnergyMeter, rapl_meter, rapl_status
 from dronefl.bench.machine import load_average, machine_info
-from dronefl.bench.report import energy_estimates, evaluate_goals, markdown, summary_line
 from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.io import atomic_write_json, atomic_write_text
+from dronefl.report.bench import energy_estimates, evaluate_goals, markdown, summary_line
 
 SCHEMA_VERSION = 1
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -49,8 +50,9 @@ from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.perception import make_detector
+from dronefl.perception.base import Detector
 from dronefl.planning import DroneFLPlanner
-from dronefl.planning.base import Plan
+from dronefl.planning.base import Plan, Planner
 from dronefl.progress import progress_bar
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, Track
@@ -140,13 +142,33 @@ def fusion_config(scenario: Scenario) -> FusionConfig:
     return FusionConfig(acceleration_psd=1.0 if random_walk else 0.1)
 
 
-def run_episode(config: TrackConfig) -> EpisodeMetrics:
-    """Run one closed-loop episode; writes ``metrics.json``, ``episode.npz`` and the plots into
-    ``config.out`` and returns the metrics.
+def scenario_fuser(scenario: Scenario) -> Fuser:
+    """The cloud's fusion for ``scenario``: one adaptive EKF per target (:func:`fusion_config`)."""
+    return Fuser(scenario.target_ids, scenario.drone_ids, fusion_config(scenario))
+
+
+@dataclass(frozen=True)
+class LoopParts:
+    """The parts of the closed loop a researcher swaps to compare, each a factory:
+    ``detector(name, world)`` the drones' detector (``name`` is ``TrackConfig.detector``),
+    ``fuser(scenario)`` the cloud's fusion, ``planner(scenario)`` the cloud's planner. The
+    predictor and how it learns are the method's (:data:`dronefl.learners.LEARNERS`; FL
+    strategies in :data:`dronefl.fl.methods.METHODS`)."""
+
+    detector: Callable[[str, World], Detector] = make_detector
+    fuser: Callable[[Scenario], Fuser] = scenario_fuser
+    planner: Callable[[Scenario], Planner] = DroneFLPlanner.from_scenario
+
+
+def run_episode(config: TrackConfig, parts: LoopParts | None = None) -> EpisodeMetrics:
+    """Run one closed-loop episode with ``parts`` (default: the paper's); writes
+    ``metrics.json``, ``episode.npz`` and the plots into ``config.out`` and returns the
+    metrics.
 
     The pretrained weights are fetched (trained if missing) first; a federated method then runs
     the whole episode inside one Flower simulation session.
     """
+    parts = parts or LoopParts()
     state = pretrained_state(config.pretrain_spec(), config.pretrained, progress=config.progress)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -155,12 +177,12 @@ def run_episode(config: TrackConfig) -> EpisodeMetrics:
         config.weights_dtype,
     )  # fmt: skip
     if not config.learner.federated:
-        return _fly(config, config.learner(setup), state)
+        return _fly(config, config.learner(setup), state, parts)
     n_drones = len(config.scenario.drones)
 
     def body(driver) -> EpisodeMetrics:
         learner = config.learner(dataclasses.replace(setup, driver=driver))
-        return _fly(config, learner, state)
+        return _fly(config, learner, state, parts)
 
     return run_session(session_settings(setup), n_drones, body)
 
@@ -168,7 +190,13 @@ def run_episode(config: TrackConfig) -> EpisodeMetrics:
 class ClosedLoop:
     """One episode's world, drones and cloud, stepped as the paper's Fig. 3."""
 
-    def __init__(self, config: TrackConfig, learner: Learner, state: dict[str, torch.Tensor]):
+    def __init__(
+        self,
+        config: TrackConfig,
+        learner: Learner,
+        state: dict[str, torch.Tensor],
+        parts: LoopParts,
+    ) -> None:
         scenario = config.scenario
         self.config, self.scenario, self.learner = config, scenario, learner
         kind = "large" if learner.model_kind == "centralized" else "dronefl"
@@ -182,9 +210,9 @@ class ClosedLoop:
 
             self.detector = CloudVisionDetector.for_world(self.world)
         else:
-            self.detector = make_detector(config.detector, self.world)
-        self.fuser = Fuser(scenario.target_ids, scenario.drone_ids, fusion_config(scenario))
-        self.planner = DroneFLPlanner.from_scenario(scenario)
+            self.detector = parts.detector(config.detector, self.world)
+        self.fuser = parts.fuser(scenario)
+        self.planner = parts.planner(scenario)
         self.counter = ByteCounter()
         self.n_steps = int(round(config.duration * scenario.rate_hz))
         meta = {"scenario": scenario.name, "environment": config.environment, "seed": config.seed}
@@ -309,10 +337,12 @@ class ClosedLoop:
         return self.log.track_position[:steps].copy()
 
 
-def _fly(config: TrackConfig, learner: Learner, state: dict[str, torch.Tensor]) -> EpisodeMetrics:
+def _fly(
+    config: TrackConfig, learner: Learner, state: dict[str, torch.Tensor], parts: LoopParts
+) -> EpisodeMetrics:
     # One thread: the tiny per-step models are dominated by thread hand-offs otherwise.
     torch.set_num_threads(1)
-    loop = ClosedLoop(config, learner, state)
+    loop = ClosedLoop(config, learner, state, parts)
     name = f"track {config.scenario.name} {config.method} seed {config.seed}"
     started = time.perf_counter()
     with progress_bar(name, loop.n_steps, config.progress) as advance:

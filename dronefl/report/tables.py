@@ -74,13 +74,15 @@ def format_metrics(metrics: EpisodeMetrics) -> str:
     return comparison([metrics])
 
 
-def comparison(results: list[EpisodeMetrics]) -> str:
-    """Episodes side by side, one column per episode (its method), Table I's metrics first."""
+def comparison(results: list[EpisodeMetrics], labels: list[str] | None = None) -> str:
+    """Episodes side by side, one column per episode headed by ``labels`` (default: each
+    episode's method), Table I's metrics first."""
     first = results[0]
+    labels = labels or [r.method for r in results]
     lines = [
         f"{first.scenario}, {first.environment}, seed {first.seed}, {first.detector} detector, "
         f"{first.sim_seconds:.0f} s per episode",
-        f"{'':26s}" + "".join(f"{r.method:>14s}" for r in results),
+        f"{'':26s}" + "".join(f"{label:>14s}" for label in labels),
     ]
     for label, value, fmt in _EPISODE_ROWS:
         lines.append(f"{label:26s}" + "".join(f"{fmt.format(value(r)):>14s}" for r in results))

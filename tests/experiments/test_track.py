@@ -4,19 +4,15 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
 from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.experiments.simulate import simulate
 from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
-from dronefl.logs import LogError, PseudoLabels, load_run
+from dronefl.logs import LogError, PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
-from dronefl.models.train import TrainConfig, train_local
-from dronefl.models.windows import WindowSet, WindowSpec, build_windows, ground_truth_labels
 from dronefl.types import Detection, Odometry
 
 
@@ -77,39 +73,7 @@ def test_pseudo_labels_round_trip_and_alignment(tmp_path):
         shifted.for_log(record.to_log())
 
 
-@pytest.fixture(scope="module")
-def quick_pretrained(tmp_path_factory):
-    """A DroneFL model trained for a few seconds on 120 s of crop field, cached where the
-    closed loop looks for pretrained weights."""
-    folder = tmp_path_factory.mktemp("pretrained")
-    data = folder / "data"
-    simulate(
-        load_scenario("case1"),
-        environment="crop_field",
-        duration=120.0,
-        seed=5,
-        out=data,
-        progress=False,
-        plot=False,
-    )
-    logs, truth = load_run(data)
-    spec = WindowSpec(10, 1, relative=True, stride=1)
-    windows = WindowSet.concat(
-        [build_windows(log, ground_truth_labels(log, truth), spec) for log in logs.values()]
-    )
-    model = build_model(predictor_config("dronefl", 10, 1), seed=0)
-    torch.set_num_threads(1)
-    train_local(model, windows, TrainConfig(epochs=15, seed=0))
-    settings = PretrainSpec(load_scenario("case1"), "dronefl").settings(folder)
-    save_checkpoint(
-        settings.checkpoint_path,
-        settings.history_path,
-        Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
-    )
-    return folder
-
-
-def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, tmp_path):
+def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained_case1, tmp_path):
     config = TrackConfig(
         scenario=load_scenario("case1"),
         method="fixed",
@@ -117,7 +81,7 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
         duration=40.0,
         environment="crop_field",
         runtime="torch",
-        pretrained=quick_pretrained,
+        pretrained=quick_pretrained_case1,
         out=tmp_path,
         progress=False,
     )
@@ -140,9 +104,9 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
     assert again.tracking == metrics.tracking
 
 
-def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, tmp_path):
+def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained_case1, tmp_path):
     # Prepare: an (untrained) large cloud model in the cache; accuracy is not under test.
-    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(quick_pretrained)
+    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(quick_pretrained_case1)
     if not settings.checkpoint_path.is_file():
         model = build_model(predictor_config("large", 10, 1), seed=0)
         save_checkpoint(
@@ -152,7 +116,7 @@ def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, 
         )
     config = TrackConfig(
         scenario=load_scenario("case1"), method="centralized", detector="yolo", seed=0,
-        duration=2.0, environment="crop_field", runtime="torch", pretrained=quick_pretrained,
+        duration=2.0, environment="crop_field", runtime="torch", pretrained=quick_pretrained_case1,
         out=tmp_path, progress=False, animate=False,
     )  # fmt: skip
     # Execute: 10 steps, every drone's frame rendered, JPEG-encoded, decoded and detected.
