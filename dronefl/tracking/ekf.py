@@ -11,6 +11,8 @@ from dronefl.tracking.models import MotionModel
 
 #: chi-square quantile for 2 degrees of freedom at 99 %: ``-2 ln(0.01)`` = 9.2103.
 CHI2_2DOF_99 = -2.0 * math.log(0.01)
+#: chi-square quantile for 2 degrees of freedom at 99.9 %: ``-2 ln(0.001)`` = 13.8155.
+CHI2_2DOF_999 = -2.0 * math.log(0.001)
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from dronefl.tracking.ekf import CHI2_2DOF_99
+from dronefl.tracking.ekf import CHI2_2DOF_99, CHI2_2DOF_999
 from dronefl.tracking.methods import FUSION_METHODS
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
@@ -43,11 +43,17 @@ class FusionConfig:
     gated out on this many consecutive updates (a lost track cannot recover through the gate),
     ``None`` never.
 
-    ``robust`` only: ``huber_threshold`` ``k^2``, the squared Mahalanobis distance beyond which
-    an innovation's weight falls as ``k / d``; ``decorrelate`` inflates each pair's ``R`` by its
-    effective-sample-size factor ``(1 + phi) / (1 - phi)``, with ``phi`` the pair's lag-1
-    innovation autocorrelation (EMA rate ``autocorrelation_rate`` per update, clipped to
-    ``[0, max_autocorrelation]``).
+    ``robust`` only (:class:`~dronefl.tracking.methods.RobustAdaptive`): ``huber_threshold``
+    ``k^2``, the squared Mahalanobis distance beyond which a measurement's weight falls as
+    ``k / d``; ``consensus_gate``: the squared distance (chi-square 2 dof 99.9 % by default) at
+    which a measurement is rejected against the other drones' mean when two or more drones see
+    the target (``None``: against the prior, with ``gate``, as the paper); ``fading``: inflate
+    the prior of a track that the drones' consensus finds outside ``gate`` (a lagging track);
+    ``noise_estimate``: how ``R`` adapts when two or more drones see the target, ``consensus``
+    (leave-one-out residuals), ``grubbs`` (the prior as the third corner) or ``innovation`` (the
+    paper's form, always used for a lone drone); ``error_autocorrelation`` ``phi``: lag-1
+    autocorrelation of the prediction errors, ``R`` inflated by ``(1 + phi) / (1 - phi)`` in
+    the update (an AR(1) error's effective-sample-size factor).
     """
 
     method: str = "robust"
@@ -63,7 +69,7 @@ class FusionConfig:
     reset_after: int | None = 5
     huber_threshold: float = CHI2_2DOF_99
     error_autocorrelation: float = 0.0
-    consensus_gate: bool = True
+    consensus_gate: float | None = CHI2_2DOF_999
     fading: bool = True
     noise_estimate: str = "consensus"
 
@@ -98,8 +104,10 @@ class FusionConfig:
                 f"noise_estimate: {self.noise_estimate!r} is not one of consensus, innovation, "
                 "grubbs"
             )
-        if self.gate is not None and not self.gate > 0:
-            raise ValueError(f"gate: must be > 0 (squared Mahalanobis distance), got {self.gate}")
+        for name in ("gate", "consensus_gate"):
+            value = getattr(self, name)
+            if value is not None and not value > 0:
+                raise ValueError(f"{name}: must be > 0 (squared Mahalanobis distance), got {value}")
         if self.reset_after is not None and self.reset_after < 1:
             raise ValueError(f"reset_after: must be >= 1 update or None, got {self.reset_after}")
 

@@ -202,6 +202,7 @@ class RobustAdaptive(FusionMethod):
         self._r = [[(r0, 0.0, r0) for _ in range(n_targets)] for _ in range(n_drones)]
         self._floor = config.noise_floor_std**2
         self._c = huber_second_moment(config.huber_threshold, config.gate)
+        self._c_consensus = huber_second_moment(config.huber_threshold, config.consensus_gate)
         phi = config.error_autocorrelation
         self._inflation = (1.0 + phi) / (1.0 - phi)
 
@@ -229,8 +230,10 @@ class RobustAdaptive(FusionMethod):
             for yi, ri in zip(y, r, strict=True)
         ]
         residual = rest = None
-        if m >= 2 and config.consensus_gate:
-            accepted, nis, residual, rest = _consensus_gate(z, r, info, prior_nis, gate)
+        if m >= 2 and config.consensus_gate is not None:
+            accepted, nis, residual, rest = _consensus_gate(
+                z, r, info, prior_nis, config.consensus_gate, gate
+            )
         else:
             nis = prior_nis
             accepted = [d <= gate for d in nis]
@@ -267,7 +270,8 @@ class RobustAdaptive(FusionMethod):
         estimate = self.config.noise_estimate
         if residual is None or len(used) < 2:
             estimate = "innovation"
-        scale = 1.0 / (self._c * self._inflation)  # R_i is kept without the inflation
+        c = self._c if estimate == "innovation" else self._c_consensus
+        scale = 1.0 / (c * self._inflation)  # R_i is kept without the inflation
         zero = (0.0, 0.0, 0.0)
         for row in used:
             i = int(drones[row])
@@ -316,10 +320,11 @@ def _floor_sym(xx: float, xy: float, yy: float, floor: float) -> tuple[float, fl
     return mid + half * c2, half * s2, mid - half * c2
 
 
-def _consensus_gate(z, r, info, prior_nis, gate):
+def _consensus_gate(z, r, info, prior_nis, gate, prior_gate):
     """Gate measurements against each other: while some leave-one-out residual's ``d^2``
     exceeds ``gate``, reject the worst and recompute among the rest (a single wild drone must not
-    drag the others' residuals out of the gate); a last survivor is judged against the prior.
+    drag the others' residuals out of the gate); a last survivor is judged against the prior
+    (``prior_gate``).
     Returns ``(accepted, d^2, residuals, residual covariances)`` per measurement (residuals and
     their covariances from the final set; rejected ones keep their last values)."""
     m = len(z)
@@ -343,7 +348,7 @@ def _consensus_gate(z, r, info, prior_nis, gate):
         nis[alive[worst]] = d2[worst]
         alive.pop(worst)
     last = alive[0]
-    accepted[last] = prior_nis[last] <= gate
+    accepted[last] = prior_nis[last] <= prior_gate
     return accepted, nis, None if sum(accepted) < 2 else residual, rest
 
 
