@@ -20,7 +20,11 @@ def _positive(figure: dict) -> None:
 def test_filterpy_reference_is_our_fusion_without_adaptation_or_gating():
     pytest.importorskip("filterpy")
     scenario = load_scenario("case3")
-    config = FusionConfig(adaptive=False, gate=None)
+    # The robust method with every robust part off (no gates, no Huber down-weighting, no
+    # fading) is a plain Kalman filter: its joint update equals filterpy's sequential ones.
+    config = FusionConfig(
+        adaptive=False, gate=None, consensus_gate=None, fading=False, huber_threshold=1e12
+    )
     _, _, stream = fly(scenario, steps=30, config=config)
 
     _, reference = filterpy_fusion(stream, scenario.dt, config)
