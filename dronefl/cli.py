@@ -3,6 +3,7 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -42,7 +43,29 @@ EnvOption = Annotated[
     typer.Option("--env", help=f"Environment: {'|'.join(ENVIRONMENTS)} (default: the scenario's)."),
 ]
 SeedOption = Annotated[int, typer.Option("--seed", help="Random seed of the run.")]
-OutOption = Annotated[Path, typer.Option("--out", "-o", help="Run folder to write.")]
+
+
+def writable_folder(out: Path) -> Path:
+    """Reject an ``--out`` that cannot become a writable folder, before any work: its nearest
+    existing ancestor must be a folder in which a file can be created."""
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise typer.BadParameter(f"{out}: {existing} is not a folder", param_hint="--out")
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise typer.BadParameter(
+            f"{out}: cannot write in {existing} ({exc.strerror})", param_hint="--out"
+        ) from None
+    return out
+
+
+OutOption = Annotated[
+    Path, typer.Option("--out", "-o", help="Run folder to write.", callback=writable_folder)
+]
 
 
 def check_choice(value: str | None, choices: tuple[str, ...], option: str) -> None:
@@ -165,6 +188,16 @@ def fl_offline(
     mu: Annotated[float, typer.Option("--mu", help="FedProx proximal weight mu.")] = 0.01,
     resume: ResumeOption = False,
     weights_dtype: WeightsDtypeOption = "float32",
+    epochs: Annotated[int, typer.Option(help="Local training epochs per round (E).")] = 10,
+    aggregation: Annotated[
+        str, typer.Option(help="Cloud aggregation: mean (FedAvg)|median|trimmed-mean|krum.")
+    ] = "mean",
+    round_timeout: Annotated[
+        float, typer.Option(help="Seconds the cloud waits for the drones in a round.")
+    ] = 3600.0,
+    faults: Annotated[
+        str, typer.Option(help="Injected drone faults ROUND:DRONE:KIND,... (dronefl.fl.faults).")
+    ] = "",
 ) -> None:
     """Offline FL (paper Fig. 5): record the case, train every method, plot and tabulate.
 
@@ -185,6 +218,10 @@ def fl_offline(
             tuple(methods.split(",")),
             resume,
             weights_dtype=weights_dtype,
+            epochs=epochs,
+            aggregation=aggregation,
+            round_timeout=round_timeout,
+            faults=faults,
         )
         typer.echo(parameter_summary())
         results = run_fl_offline(config)
@@ -476,3 +513,7 @@ def main() -> None:
         app()
     except USER_ERRORS as exc:
         raise SystemExit(fail(str(exc)).exit_code) from None
+
+
+if __name__ == "__main__":
+    main()

@@ -23,6 +23,7 @@ from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.fl.records import RUN_DIR_KEY, FlSettings, SettingsError, global_part
 from dronefl.fl.strategies import make_strategy
 from dronefl.fl.traffic import CountingGrid, Traffic
+from dronefl.io import crash_point
 from dronefl.models.model import build_model
 
 #: Called with each finished round's history entry (e.g. to advance a progress bar).
@@ -63,7 +64,7 @@ def run_server(
     state, offset, history = initial_state(settings), 0, []
     if settings.resume and settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(
-            settings.checkpoint_path, settings.history_path, settings.method
+            settings.checkpoint_path, settings.history_path, settings.method, like=state
         )
         state, offset, history = checkpoint.state, checkpoint.server_round, checkpoint.history
     remaining = settings.rounds - offset
@@ -115,6 +116,7 @@ class RoundDriver:
             settings.proximal_mu,
             first_round - 1,
             evaluate=settings.evaluates,
+            aggregation=settings.aggregation,
         )
         config = ConfigRecord({RUN_DIR_KEY: run_dir} if run_dir else {})
         latest = dict(state)
@@ -123,6 +125,7 @@ class RoundDriver:
             if local_round == 0:  # Flower also calls this before the first round
                 return None
             server_round = local_round + first_round - 1
+            crash_point(f"round-end:{server_round}")
             log = strategy.logs[server_round]
             entry = {
                 "round": server_round,
@@ -150,6 +153,7 @@ class RoundDriver:
             train_config=config,
             evaluate_config=ConfigRecord(dict(config)),
             evaluate_fn=end_of_round,
+            timeout=settings.round_timeout,
         )
         return latest
 
