@@ -42,7 +42,7 @@ EnvOption = Annotated[
     str | None,
     typer.Option("--env", help=f"Environment: {'|'.join(ENVIRONMENTS)} (default: the scenario's)."),
 ]
-SeedOption = Annotated[int, typer.Option("--seed", help="Random seed of the run.")]
+SeedOption = Annotated[int, typer.Option("--seed", min=0, help="Random seed of the run.")]
 
 
 def writable_folder(out: Path) -> Path:
@@ -92,7 +92,7 @@ def simulate(
 
     check_choice(env, ENVIRONMENTS, "--env")
     check_choice(detector, DETECTORS, "--detector")
-    if duration <= 0:
+    if not duration > 0:
         raise fail(f"--duration: must be positive, got {duration}")
     spec = load_scenario(scenario)
     summary = run(spec, environment=env, duration=duration, seed=seed, out=out, detector=detector)
@@ -135,12 +135,12 @@ def demo(
 
     Example: dronefl demo --out runs/demo
     """
-    from dronefl.experiments.track import TrackConfig, run_episode
+    from dronefl.experiments.track import run_episode
     from dronefl.report.tables import comparison
 
     results = []
     for method in ("fixed", "dronefl"):
-        config = TrackConfig(
+        config = _track_config(
             case=2,
             method=method,
             seed=0,
@@ -386,6 +386,8 @@ def detector_figures(
     """
     from dronefl.report.frames import write_detector_figures
 
+    if not eval_json.is_file():
+        raise fail(f"--eval: no {eval_json}: run `dronefl detector evaluate` first")
     try:
         written = write_detector_figures(out, weights, eval_json)
     except ValueError as exc:  # corrupt weights
@@ -395,6 +397,9 @@ def detector_figures(
 
 
 CaseOption = Annotated[int, typer.Option("--case", help="Paper case: 1, 2 or 3.")]
+PretrainedOption = Annotated[
+    Path, typer.Option(help="Cache of pretrained models.", callback=writable_folder)
+]
 TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dronefl")]
 
 
@@ -418,9 +423,7 @@ def track(
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: Annotated[str, typer.Option(help="tracks (pseudo-labels) | ground_truth")] = "tracks",
     weights_dtype: WeightsDtypeOption = "float32",
-    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
-        "runs/pretrained"
-    ),
+    pretrained: PretrainedOption = Path("runs/pretrained"),
     out: OutOption = Path("runs/track"),
 ) -> None:
     """Closed-loop tracking: detect, predict, fuse, plan every 0.2 s; an FL round every 100 s.
@@ -465,9 +468,7 @@ def table1(
     cases: Annotated[str, typer.Option("--cases", help="Cases, e.g. '1 2 3'.")] = "1 2 3",
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
     weights_dtype: WeightsDtypeOption = "float32",
-    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
-        "runs/pretrained"
-    ),
+    pretrained: PretrainedOption = Path("runs/pretrained"),
     out: OutOption = Path("runs/table1"),
 ) -> None:
     """Table I: every case x {centralized, fixed, dronefl} x seed; markdown, CSV and a plot.
@@ -480,7 +481,10 @@ def table1(
     base = _track_config(
         case=1, duration=duration, weights_dtype=weights_dtype, pretrained=pretrained, out=out
     )
-    rows = run_table1(base, cases=_int_list(cases, "--cases"), seeds=_int_list(seeds, "--seeds"))
+    case_list, seed_list = _int_list(cases, "--cases"), _int_list(seeds, "--seeds")
+    for case in case_list:  # each case is valid before the first episode starts
+        _track_config(case=case, out=out)
+    rows = run_table1(base, cases=case_list, seeds=seed_list)
     typer.echo((out / "table1.md").read_text())
     typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(rows)} episodes)")
 
@@ -488,7 +492,7 @@ def table1(
 @app.command()
 def pretrain(
     case: CaseOption = 2,
-    rounds: Annotated[int, typer.Option(help="FL rounds / centralized epochs x10.")] = 20,
+    rounds: Annotated[int, typer.Option(min=1, help="FL rounds / centralized epochs x10.")] = 20,
     out: OutOption = Path("runs/pretrained"),
 ) -> None:
     """Pretrain the closed loop's models in the crop field (DroneFL by FL, the large

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from dronefl.bench import closed_loop, cloud, comm, predictor, simulator, vision
+from dronefl.bench import bandwidth, closed_loop, cloud, predictor, simulator, vision
 from dronefl.bench.energy import EnergyMeter, rapl_meter, rapl_status
 from dronefl.bench.machine import load_average, machine_info
 from dronefl.bench.report import energy_estimates, evaluate_goals, markdown, summary_line
@@ -103,7 +103,7 @@ def _vision(ctx: BenchContext) -> dict[str, dict]:
     rate_hz = load_scenario("case3").rate_hz
     return {
         **vision.bench_detector(frames, ctx.meter),
-        "centralized_uplink": comm.centralized_uplink(frames, rate_hz),
+        "centralized_uplink": bandwidth.centralized_uplink(frames, rate_hz),
     }
 
 

@@ -182,7 +182,10 @@ def _train_method(settings: FlSettings, advance: Advance) -> list[dict]:
     if settings.resume and settings.checkpoint_path.is_file():
         advance(
             load_checkpoint(
-                settings.checkpoint_path, settings.history_path, settings.method
+                settings.checkpoint_path,
+                settings.history_path,
+                settings.method,
+                like=initial_state(settings),
             ).server_round
         )
     if settings.method_spec.federated:
@@ -194,7 +197,12 @@ def _finished_history(settings: FlSettings) -> list[dict] | None:
     """The history of a resumed method that already finished all its rounds."""
     if not (settings.resume and settings.checkpoint_path.is_file()):
         return None
-    checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, settings.method)
+    checkpoint = load_checkpoint(
+        settings.checkpoint_path,
+        settings.history_path,
+        settings.method,
+        like=initial_state(settings),
+    )
     return checkpoint.history if checkpoint.server_round >= settings.rounds else None
 
 

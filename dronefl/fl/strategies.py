@@ -63,7 +63,7 @@ def screen_reply(reply: Message, expected: dict[str, tuple[int, ...]]) -> str | 
     """Why a training reply must be left out of aggregation, or None if it is usable;
     ``expected`` maps the names of the arrays sent to their shapes."""
     if reply.has_error():
-        return f"error ({reply.error.reason})"
+        return f"error ({_error_summary(reply.error.reason)})"
     content = reply.content
     if len(content.array_records) != 1 or len(content.metric_records) != 1:
         return "reply must hold one ArrayRecord and one MetricRecord"
@@ -85,6 +85,16 @@ def screen_reply(reply: Message, expected: dict[str, tuple[int, ...]]) -> str | 
         if np.abs(w).max(initial=0.0) > MAX_ABS_WEIGHT:
             return f"absurd weights (|w| > {MAX_ABS_WEIGHT:g})"
     return None
+
+
+def _error_summary(reason: str) -> str:
+    """The message of a drone's error, without the traceback and process ids the simulation
+    engine wraps it in (so that the history of a rerun is the same)."""
+    lines = [line.strip() for line in reason.strip().strip("'<>").splitlines() if line.strip()]
+    for line in reversed(lines):
+        if "Message: " in line:
+            return line.split("Message: ", 1)[1].strip().strip("'<>")
+    return lines[-1][:200] if lines else "no reason given"
 
 
 def _drone_id_of(reply: Message) -> int:
