@@ -110,7 +110,8 @@ def _check_like(path: Path, state: dict[str, torch.Tensor], like: dict[str, torc
 def load_history(history_path: Path, server_round: int) -> list[dict]:
     """The entries of rounds ``1..server_round`` of a round history (entries of later rounds,
     written just before a kill, are dropped); raises :class:`CheckpointError` naming the file
-    when it is missing, corrupt or lacks one of those rounds."""
+    when it is missing, corrupt or lacks one of those rounds. An empty history is allowed (a
+    checkpoint written outside FL rounds, e.g. a model trained elsewhere)."""
     history_path = Path(history_path)
     try:
         history = json.loads(history_path.read_text())
@@ -121,7 +122,7 @@ def load_history(history_path: Path, server_round: int) -> list[dict]:
     ):
         raise CheckpointError(f"{history_path}: round history must be a list of round entries")
     kept = [h for h in history if h["round"] <= server_round]
-    if [h["round"] for h in kept] != list(range(1, server_round + 1)):
+    if kept and [h["round"] for h in kept] != list(range(1, server_round + 1)):
         raise CheckpointError(
             f"{history_path}: round history does not hold rounds 1..{server_round} in order"
         )

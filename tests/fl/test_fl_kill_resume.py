@@ -3,6 +3,8 @@ bit-identical to an uninterrupted run: history, results (but wall-clock seconds)
 weights. The process kills itself (``DRONEFL_CRASH_AT``, see :mod:`dronefl.io`), so each
 kill lands at the same place every time; every process it started is gone afterwards."""
 
+import contextlib
+import ctypes
 import json
 import multiprocessing
 import os
@@ -17,6 +19,7 @@ import pytest
 
 from dronefl.io import CRASH_ENV
 
+PR_SET_CHILD_SUBREAPER = 36
 TINY = ["--case", "1", "--duration", "40", "--stride", "5", "--seed", "3", "--epochs", "2"]
 #: Children are forked from a server that has imported the CLI once (a fresh interpreter per
 #: run would spend most of the test importing torch; Adam imports torch._dynamo on first use).
@@ -34,10 +37,21 @@ def _cli(argv: list[str], crash_at: str | None) -> None:
     main()
 
 
+def _adopt_orphans() -> None:
+    """Make this process the reaper of its descendants' orphans (Linux ``prctl``). A killed run's
+    Ray processes are orphaned; where PID 1 never reaps (as in some containers) the dead raylet
+    would stay a zombie, which Ray's agents take for a live parent, and never exit."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)
+
+
 def _running(process: psutil.Process) -> bool:
-    """Alive and not a zombie (an exited process whose parent has not collected it yet)."""
+    """Alive (a zombie that was our orphan is reaped here; any other zombie counts as gone)."""
     try:
-        return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
+        if process.status() == psutil.STATUS_ZOMBIE:
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(process.pid, os.WNOHANG)
+            return False
+        return process.is_running()
     except psutil.NoSuchProcess:
         return False
 
@@ -45,6 +59,7 @@ def _running(process: psutil.Process) -> bool:
 def fl_offline(out: Path, *args: str, crash_at: str | None = None) -> int:
     """Run `dronefl fl-offline` in a child process; returns its exit code after checking that
     every process it started (Ray's included) has exited."""
+    _adopt_orphans()
     child = _SERVER.Process(
         target=_cli, args=(["fl-offline", *TINY, "--out", str(out), *args], crash_at)
     )
