@@ -17,19 +17,23 @@ eval-nan    reports a NaN test MSE
 =========== ===================================================================================
 
 The ClientApp calls :func:`inject` at one place per phase, on the reply it is about to send.
-An empty ``faults`` (the default) injects nothing.
+An empty ``faults`` (the default) injects nothing. :func:`garble_detections` is the data-level
+fault: a drone whose detector returns garbage, so that its (finite, plausible-looking) updates
+pass every screen and only a robust aggregation rule can keep them out.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 from flwr.app import Array, ArrayRecord, MetricRecord, RecordDict
 
 from dronefl.fl.records import ARRAYS_KEY, METRICS_KEY, WEIGHTS_KEY, FlSettings, SettingsError
+from dronefl.logs import OnboardLog
 
 TRAIN_KINDS = ("raise", "hang", "nan", "absurd", "shape")
 EVALUATE_KINDS = ("eval-raise", "eval-nan")
@@ -106,3 +110,18 @@ def _bad_weights(content: RecordDict, kind: str) -> ArrayRecord:
     else:  # shape
         bad = weights[:-1].copy()
     return ArrayRecord({WEIGHTS_KEY: Array(bad)})
+
+
+def garble_detections(log_path: str | Path, seed: int) -> Path:
+    """Rewrite the onboard log at ``log_path`` as if the drone's detector returned garbage: every
+    target "detected" at every step, at a box drawn uniformly in the image (centre and size in
+    [0, 1]), with confidence 0.9. Odometry and times stay true."""
+    log = OnboardLog.load(log_path)
+    rng = np.random.default_rng(seed)
+    garbage = replace(
+        log,
+        boxes=rng.uniform(0.0, 1.0, size=log.boxes.shape).astype(np.float32),
+        detected=np.ones_like(log.detected),
+        confidence=np.full_like(log.confidence, 0.9),
+    )
+    return garbage.save(log_path)
