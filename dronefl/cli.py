@@ -201,7 +201,8 @@ def fl_offline(
         str, typer.Option(help="Cloud aggregation: mean (FedAvg)|median|trimmed-mean|krum.")
     ] = "mean",
     round_timeout: Annotated[
-        float, typer.Option(help="Seconds the cloud waits for the drones in a round.")
+        float,
+        typer.Option(help="Seconds the cloud waits for the drones in a round (not the first)."),
     ] = 3600.0,
     faults: Annotated[
         str, typer.Option(help="Injected drone faults ROUND:DRONE:KIND,... (dronefl.fl.faults).")

@@ -63,8 +63,9 @@ class FlSettings:
     rest being its test set (1.0: train on everything and skip federated evaluation, as in the
     closed loop, where evaluation is not part of the method); ``aggregation`` one of
     :data:`AGGREGATIONS`; ``round_timeout`` s the cloud waits for the drones' replies in each
-    round (a drone that has not answered by then is left out of it); ``faults`` injected drone
-    faults, for tests (see :mod:`dronefl.fl.faults`; empty: none).
+    exchange after the first (a drone that has not answered by then is left out of the round;
+    the first exchange waits for the drones to start up, see ``server_app.StartupGrid``);
+    ``faults`` injected drone faults, for tests (see :mod:`dronefl.fl.faults`; empty: none).
     """
 
     run_dir: str

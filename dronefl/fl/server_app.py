@@ -12,11 +12,11 @@ for a whole episode and plays one round at a time on new data
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import torch
-from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord
+from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MetricRecord
 from flwr.serverapp import Grid, ServerApp
 
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
@@ -26,6 +26,8 @@ from dronefl.fl.traffic import CountingGrid, Traffic
 from dronefl.io import crash_point
 from dronefl.models.model import build_model
 
+#: The longest the first exchange with the drones may take (their start-up), s.
+STARTUP_TIMEOUT = 3600.0
 #: Called with each finished round's history entry (e.g. to advance a progress bar).
 RoundCallback = Callable[[dict], None]
 
@@ -75,6 +77,29 @@ def run_server(
     return driver.history
 
 
+class StartupGrid:
+    """A Grid whose first exchange waits up to :data:`STARTUP_TIMEOUT` s whatever the round
+    timeout: the drones' first answer includes starting their ClientApps (importing torch,
+    loading data), which can take longer than a round; later exchanges keep the strategy's
+    timeout (``round_timeout``)."""
+
+    def __init__(self, grid: Grid) -> None:
+        self._grid = grid
+        self._started = False
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._grid, name)
+
+    def send_and_receive(
+        self, messages: Iterable[Message], *, timeout: float | None = None
+    ) -> Iterable[Message]:
+        if not self._started:
+            timeout = max(timeout or 0.0, STARTUP_TIMEOUT)
+        replies = self._grid.send_and_receive(messages, timeout=timeout)
+        self._started = True
+        return replies
+
+
 class RoundDriver:
     """Plays global rounds of ``settings.method`` with ``n_drones`` drones through ``grid``.
 
@@ -91,7 +116,7 @@ class RoundDriver:
         self.n_drones = n_drones
         self.history: list[dict] = list(history or [])
         self.layout = settings.layout
-        self._grid = CountingGrid(grid)
+        self._grid = CountingGrid(StartupGrid(grid))
 
     @property
     def traffic(self) -> Traffic:
