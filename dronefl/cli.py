@@ -3,6 +3,7 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -47,8 +48,30 @@ EnvOption = Annotated[
     str | None,
     typer.Option("--env", help=f"Environment: {'|'.join(ENVIRONMENTS)} (default: the scenario's)."),
 ]
-SeedOption = Annotated[int, typer.Option("--seed", help="Random seed of the run.")]
-OutOption = Annotated[Path, typer.Option("--out", "-o", help="Run folder to write.")]
+SeedOption = Annotated[int, typer.Option("--seed", min=0, help="Random seed of the run.")]
+
+
+def writable_folder(out: Path) -> Path:
+    """Reject an ``--out`` that cannot become a writable folder, before any work: its nearest
+    existing ancestor must be a folder in which a file can be created."""
+    existing = out
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise typer.BadParameter(f"{out}: {existing} is not a folder", param_hint="--out")
+    try:
+        with tempfile.TemporaryFile(dir=existing):
+            pass
+    except OSError as exc:
+        raise typer.BadParameter(
+            f"{out}: cannot write in {existing} ({exc.strerror})", param_hint="--out"
+        ) from None
+    return out
+
+
+OutOption = Annotated[
+    Path, typer.Option("--out", "-o", help="Run folder to write.", callback=writable_folder)
+]
 
 
 def check_choice(value: str | None, choices: tuple[str, ...], option: str) -> None:
@@ -75,7 +98,7 @@ def simulate(
 
     check_choice(env, ENVIRONMENTS, "--env")
     check_choice(detector, DETECTORS, "--detector")
-    if duration <= 0:
+    if not duration > 0:
         raise fail(f"--duration: must be positive, got {duration}")
     spec = load_scenario(scenario)
     summary = run(spec, environment=env, duration=duration, seed=seed, out=out, detector=detector)
@@ -173,6 +196,17 @@ def fl_offline(
     mu: Annotated[float, typer.Option("--mu", help="FedProx proximal weight mu.")] = 0.01,
     resume: ResumeOption = False,
     weights_dtype: WeightsDtypeOption = "float32",
+    epochs: Annotated[int, typer.Option(help="Local training epochs per round (E).")] = 10,
+    aggregation: Annotated[
+        str, typer.Option(help="Cloud aggregation: mean (FedAvg)|median|trimmed-mean|krum.")
+    ] = "mean",
+    round_timeout: Annotated[
+        float,
+        typer.Option(help="Seconds the cloud waits for the drones in a round (not the first)."),
+    ] = 3600.0,
+    faults: Annotated[
+        str, typer.Option(help="Injected drone faults ROUND:DRONE:KIND,... (dronefl.fl.faults).")
+    ] = "",
 ) -> None:
     """Offline FL (paper Fig. 5): record the case, train every method, plot and tabulate.
 
@@ -193,6 +227,10 @@ def fl_offline(
             tuple(methods.split(",")),
             resume,
             weights_dtype=weights_dtype,
+            epochs=epochs,
+            aggregation=aggregation,
+            round_timeout=round_timeout,
+            faults=faults,
         )
         typer.echo(parameter_summary())
         results = run_fl_offline(config)
@@ -357,6 +395,8 @@ def detector_figures(
     """
     from dronefl.report.frames import write_detector_figures
 
+    if not eval_json.is_file():
+        raise fail(f"--eval: no {eval_json}: run `dronefl detector evaluate` first")
     try:
         written = write_detector_figures(out, weights, eval_json)
     except ValueError as exc:  # corrupt weights
@@ -366,7 +406,9 @@ def detector_figures(
 
 
 TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dronefl")]
-PretrainedOption = Annotated[Path, typer.Option(help="Cache of pretrained models.")]
+PretrainedOption = Annotated[
+    Path, typer.Option(help="Cache of pretrained models.", callback=writable_folder)
+]
 PretrainRoundsOption = Annotated[
     int, typer.Option("--pretrain-rounds", help="FL rounds of the crop-field pretraining.")
 ]
@@ -493,7 +535,7 @@ def table1(
 @app.command()
 def pretrain(
     scenario: ScenarioOption = "case2",
-    rounds: Annotated[int, typer.Option(help="FL rounds / centralized epochs x10.")] = 20,
+    rounds: Annotated[int, typer.Option(min=1, help="FL rounds / centralized epochs x10.")] = 20,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
     out: OutOption = Path("runs/pretrained"),

@@ -292,6 +292,7 @@ class PseudoLabels:
         """Read and validate a file written by :meth:`save`."""
         data = _read_npz(Path(path), PSEUDO_LABEL_FORMAT, ("t", "target_ids", "position", "meta"))
         _expect_shape(path, data, "position", (data["t"].shape[0], data["target_ids"].shape[0], 2))
+        _expect_finite(path, data, ("t",))  # positions are NaN where no track existed
         return cls(data["t"], data["target_ids"], data["position"])
 
     def for_log(self, log: OnboardLog) -> np.ndarray:

@@ -30,6 +30,7 @@ Model weights exchanged by federated learning are counted separately by :mod:`dr
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
@@ -77,22 +78,28 @@ class PredictionMessage:
 
     @classmethod
     def decode(cls, data: bytes) -> PredictionMessage:
-        """Unpack bytes made by :meth:`encode`."""
+        """Unpack bytes made by :meth:`encode`; raises :class:`WireError` for anything else
+        (wrong version or length, no horizon, items out of order, a target twice)."""
+        data = bytes(data)
         if len(data) < _PRED_HEAD.size:
             raise WireError(f"prediction message of {len(data)} bytes is shorter than its header")
         version, drone_id, step, horizon, count = _PRED_HEAD.unpack_from(data)
         if version != WIRE_VERSION:
             raise WireError(f"prediction message version {version}, expected {WIRE_VERSION}")
-        if len(data) != _PRED_HEAD.size + count * _PRED_ITEM.size or (horizon and count % horizon):
+        if horizon < 1:
+            raise WireError("prediction message with a horizon of 0 steps")
+        if len(data) != _PRED_HEAD.size + count * _PRED_ITEM.size or count % horizon:
             raise WireError(f"prediction message of {len(data)} bytes does not hold {count} items")
-        items = [
-            _PRED_ITEM.unpack_from(data, _PRED_HEAD.size + k * _PRED_ITEM.size)
-            for k in range(count)
-        ]
-        n = count // horizon if horizon else 0  # no targets: (0, L_f, 2) positions
+        items = list(_PRED_ITEM.iter_unpack(data[_PRED_HEAD.size :]))
+        n = count // horizon  # no targets: (0, L_f, 2) positions
+        target_ids = tuple(items[k * horizon][0] for k in range(n))
+        for k, (target_id, ahead, _, _) in enumerate(items):
+            if target_id != target_ids[k // horizon] or ahead != k % horizon + 1:
+                raise WireError(f"prediction message item {k} is out of order")
+        if len(set(target_ids)) != n:
+            raise WireError("prediction message names a target twice")
         positions = np.array([[x, y] for _, _, x, y in items], dtype=float).reshape(n, horizon, 2)
         positions /= 100.0  # cm -> m
-        target_ids = tuple(items[k * horizon][0] for k in range(n))
         return cls(drone_id, step, target_ids, positions)
 
 
@@ -110,12 +117,15 @@ class ControlMessage:
 
     @classmethod
     def decode(cls, data: bytes) -> ControlMessage:
-        """Unpack bytes made by :meth:`encode`."""
+        """Unpack bytes made by :meth:`encode`; raises :class:`WireError` for anything else."""
+        data = bytes(data)
         if len(data) != _CONTROL.size:
             raise WireError(f"control message must be {_CONTROL.size} bytes, got {len(data)}")
         version, drone_id, step, ax, ay = _CONTROL.unpack(data)
         if version != WIRE_VERSION:
             raise WireError(f"control message version {version}, expected {WIRE_VERSION}")
+        if not (math.isfinite(ax) and math.isfinite(ay)):
+            raise WireError("control message with a non-finite acceleration")
         return cls(drone_id, step, (ax, ay))
 
 

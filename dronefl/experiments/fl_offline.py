@@ -36,7 +36,7 @@ from dronefl.fl.methods import ABLATION_METHODS, FIG5_METHODS, METHODS
 from dronefl.fl.records import FlSettings
 from dronefl.fl.server_app import initial_state
 from dronefl.fl.simulation import run_federated
-from dronefl.io import atomic_write_json, atomic_write_text
+from dronefl.io import atomic_write_json, atomic_write_text, crash_point
 from dronefl.logs import load_run
 from dronefl.models.model import build_model, count_parameters, describe
 from dronefl.models.train import evaluate, train_local
@@ -56,8 +56,10 @@ class OfflineConfig:
     """One offline FL experiment: scenario ``case`` (1-3), ``rounds`` global rounds,
     ``seed`` (simulation, model initialisation, training), ``duration`` s of recorded flight,
     window ``stride`` (samples), FedProx ``proximal_mu``, the ``methods`` to train, whether to
-    ``resume`` finished work in ``out``, progress bars, and the number format of the weights
-    on the wire (``weights_dtype``)."""
+    ``resume`` finished work in ``out``, progress bars, the number format of the weights
+    on the wire (``weights_dtype``), local ``epochs`` per round, the cloud's ``aggregation``
+    rule, the ``round_timeout`` s it waits for the drones and injected drone ``faults`` (see
+    :class:`FlSettings`)."""
 
     case: int
     out: Path
@@ -70,6 +72,10 @@ class OfflineConfig:
     resume: bool = False
     progress: bool = True
     weights_dtype: str = "float32"
+    epochs: int = 10
+    aggregation: str = "mean"
+    round_timeout: float = 3600.0
+    faults: str = ""
 
     def __post_init__(self) -> None:
         if self.case not in (1, 2, 3):
@@ -79,6 +85,10 @@ class OfflineConfig:
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown:
             raise ValueError(f"--methods: unknown {unknown}; choose from {list(METHODS)}")
+        if not self.duration > 0:
+            raise ValueError(f"--duration: must be > 0 s, got {self.duration}")
+        for method in self.methods:  # every FL setting is valid before any work starts
+            self.settings(method, self.out / "data")
 
     def settings(self, method: str, run_dir: Path) -> FlSettings:
         return FlSettings(
@@ -91,6 +101,10 @@ class OfflineConfig:
             seed=self.seed,
             resume=self.resume,
             weights_dtype=self.weights_dtype,
+            epochs=self.epochs,
+            aggregation=self.aggregation,
+            round_timeout=self.round_timeout,
+            faults=self.faults,
         )
 
 
@@ -109,6 +123,7 @@ def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> d
             progress=config.progress,
             plot=False,
         )
+    load_run(run_dir)  # a corrupt recording fails here, naming the file, before any training
     results_path = config.out / "results.json"
     results = {
         "case": config.case,
@@ -117,6 +132,8 @@ def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> d
         "seed": config.seed,
         "duration_s": config.duration,
         "stride": config.stride,
+        "epochs": config.epochs,
+        "aggregation": config.aggregation,
         "proximal_mu": config.proximal_mu,
         "mse": "m^2, mean over windows, 5 future steps and both axes; averaged over drones",
         "methods": _earlier_methods(results_path) if config.resume else {},
@@ -147,11 +164,14 @@ def _earlier_methods(results_path: Path) -> dict:
     if not results_path.is_file():
         return {}
     try:
-        return dict(json.loads(results_path.read_text())["methods"])
+        methods = json.loads(results_path.read_text())["methods"]
     except (OSError, ValueError, KeyError, TypeError):
-        raise CheckpointError(
-            f"{results_path}: corrupt results file; remove it or drop --resume"
-        ) from None
+        methods = None
+    if not isinstance(methods, dict) or not all(
+        isinstance(block, dict) and "final_test_mse" in block for block in methods.values()
+    ):
+        raise CheckpointError(f"{results_path}: corrupt results file; remove it or drop --resume")
+    return methods
 
 
 def _train_method(settings: FlSettings, advance: Advance) -> list[dict]:
@@ -162,7 +182,10 @@ def _train_method(settings: FlSettings, advance: Advance) -> list[dict]:
     if settings.resume and settings.checkpoint_path.is_file():
         advance(
             load_checkpoint(
-                settings.checkpoint_path, settings.history_path, settings.method
+                settings.checkpoint_path,
+                settings.history_path,
+                settings.method,
+                like=initial_state(settings),
             ).server_round
         )
     if settings.method_spec.federated:
@@ -174,7 +197,12 @@ def _finished_history(settings: FlSettings) -> list[dict] | None:
     """The history of a resumed method that already finished all its rounds."""
     if not (settings.resume and settings.checkpoint_path.is_file()):
         return None
-    checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, settings.method)
+    checkpoint = load_checkpoint(
+        settings.checkpoint_path,
+        settings.history_path,
+        settings.method,
+        like=initial_state(settings),
+    )
     return checkpoint.history if checkpoint.server_round >= settings.rounds else None
 
 
@@ -201,7 +229,10 @@ def run_centralized(
     offset, history = 0, []
     if settings.resume and settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(
-            settings.checkpoint_path, settings.history_path, settings.method
+            settings.checkpoint_path,
+            settings.history_path,
+            settings.method,
+            like=model.state_dict(),
         )
         model.load_state_dict(checkpoint.state)
         offset, history = checkpoint.server_round, checkpoint.history
@@ -216,6 +247,7 @@ def run_centralized(
             "rejected": [],
             "bytes": {"down": {}, "up": {}},
         }
+        crash_point(f"round-end:{server_round}")
         history.append(entry)
         save_checkpoint(
             settings.checkpoint_path,

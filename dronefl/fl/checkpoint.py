@@ -1,8 +1,11 @@
 """Atomic per-round checkpoints of the global model, and resuming from them.
 
-After every global round the server writes ``checkpoint.npz`` (the global weights, the round
-and the method) and ``history.json`` (one entry per finished round), each atomically, so a
-killed run loses at most the round in progress. ``--resume`` continues at the next round.
+After every global round the server writes ``history.json`` (one entry per finished round) and
+then ``checkpoint.npz`` (the global weights, the round and the method), each atomically and
+fsynced. In that order a kill between the two leaves a history one round ahead of the
+checkpoint, whose extra entry is dropped on resume (the round is played again, bit for bit);
+never a checkpoint whose history lacks a round. So a killed run loses at most the round in
+progress, and ``--resume`` continues at the next round.
 """
 
 from __future__ import annotations
@@ -37,7 +40,8 @@ class Checkpoint:
 
 
 def save_checkpoint(path: Path, history_path: Path, checkpoint: Checkpoint) -> None:
-    """Write the weights, then the history (each atomically)."""
+    """Write the history, then the weights (each atomically)."""
+    atomic_write_json(history_path, checkpoint.history)
     arrays = {_PREFIX + k: v.detach().cpu().numpy() for k, v in checkpoint.state.items()}
     atomic_savez(
         path,
@@ -46,11 +50,18 @@ def save_checkpoint(path: Path, history_path: Path, checkpoint: Checkpoint) -> N
         server_round=np.array(checkpoint.server_round),
         **arrays,
     )
-    atomic_write_json(history_path, checkpoint.history)
 
 
-def load_checkpoint(path: Path, history_path: Path, method: str) -> Checkpoint:
-    """Read a checkpoint of ``method``; raises :class:`CheckpointError` on any problem."""
+def load_checkpoint(
+    path: Path,
+    history_path: Path,
+    method: str,
+    like: dict[str, torch.Tensor] | None = None,
+) -> Checkpoint:
+    """Read a checkpoint of ``method`` (whose tensors must have the names and shapes of
+    ``like``, when given) and its history; raises :class:`CheckpointError` naming the file on
+    any problem."""
+    path, history_path = Path(path), Path(history_path)
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint to resume from")
     try:
@@ -65,19 +76,54 @@ def load_checkpoint(path: Path, history_path: Path, method: str) -> Checkpoint:
             }
     except CheckpointError:
         raise
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError) as exc:
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError) as exc:
         raise CheckpointError(
             f"{path}: truncated or corrupt checkpoint ({type(exc).__name__})"
         ) from None
     if saved_method != method:
         raise CheckpointError(f"{path}: checkpoint of method {saved_method!r}, not {method!r}")
+    if server_round < 1:
+        raise CheckpointError(f"{path}: round {server_round} is not a finished round")
+    if not state or not all(v.is_floating_point() for v in state.values()):
+        raise CheckpointError(f"{path}: checkpoint holds no floating-point weights")
     if not all(bool(torch.isfinite(v).all()) for v in state.values()):
         raise CheckpointError(f"{path}: checkpoint holds non-finite weights")
+    if like is not None:
+        _check_like(path, state, like)
+    return Checkpoint(saved_method, server_round, state, load_history(history_path, server_round))
+
+
+def _check_like(path: Path, state: dict[str, torch.Tensor], like: dict[str, torch.Tensor]) -> None:
+    if set(state) != set(like):
+        missing, extra = sorted(set(like) - set(state)), sorted(set(state) - set(like))
+        raise CheckpointError(
+            f"{path}: weights of another model (missing {missing[:3]}, unexpected {extra[:3]})"
+        )
+    for name, tensor in like.items():
+        if tuple(state[name].shape) != tuple(tensor.shape):
+            raise CheckpointError(
+                f"{path}: '{name}' has shape {tuple(state[name].shape)}, "
+                f"expected {tuple(tensor.shape)}"
+            )
+
+
+def load_history(history_path: Path, server_round: int) -> list[dict]:
+    """The entries of rounds ``1..server_round`` of a round history (entries of later rounds,
+    written just before a kill, are dropped); raises :class:`CheckpointError` naming the file
+    when it is missing, corrupt or lacks one of those rounds. An empty history is allowed (a
+    checkpoint written outside FL rounds, e.g. a model trained elsewhere)."""
+    history_path = Path(history_path)
     try:
         history = json.loads(history_path.read_text())
-    except (OSError, json.JSONDecodeError):
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         raise CheckpointError(f"{history_path}: missing or corrupt round history") from None
-    if not isinstance(history, list):
-        raise CheckpointError(f"{history_path}: round history must be a list")
-    history = [h for h in history if int(h.get("round", 0)) <= server_round]
-    return Checkpoint(saved_method, server_round, state, history)
+    if not isinstance(history, list) or not all(
+        isinstance(h, dict) and isinstance(h.get("round"), int) for h in history
+    ):
+        raise CheckpointError(f"{history_path}: round history must be a list of round entries")
+    kept = [h for h in history if h["round"] <= server_round]
+    if kept and [h["round"] for h in kept] != list(range(1, server_round + 1)):
+        raise CheckpointError(
+            f"{history_path}: round history does not hold rounds 1..{server_round} in order"
+        )
+    return kept

@@ -24,6 +24,7 @@ import torch
 from flwr.app import Context, Message, RecordDict
 from flwr.clientapp import ClientApp
 
+from dronefl.fl.faults import inject
 from dronefl.fl.records import (
     ARRAYS_KEY,
     DRONE_KEY,
@@ -82,6 +83,7 @@ def handle_train(msg: Message, context: Context, settings: FlSettings) -> Messag
         state = {k: v for k, v in state.items() if k in global_state}
     report = ClientReport(drone_id, stats.num_examples, stats.loss)
     content = RecordDict({ARRAYS_KEY: layout.pack(state), METRICS_KEY: report.to_metrics()})
+    content = inject(settings, instructions.server_round, drone_id, content)
     return Message(content=content, reply_to=msg)
 
 
@@ -92,7 +94,9 @@ def handle_evaluate(msg: Message, context: Context, settings: FlSettings) -> Mes
     global_state = settings.layout.unpack(msg.content[ARRAYS_KEY])
     model = _local_model(settings, global_state, context, drone_id, instructions.server_round)
     report = ClientReport(drone_id, len(test_set), evaluate(model, test_set))
-    return Message(content=RecordDict({METRICS_KEY: report.to_metrics()}), reply_to=msg)
+    content = RecordDict({METRICS_KEY: report.to_metrics()})
+    content = inject(settings, instructions.server_round, drone_id, content)
+    return Message(content=content, reply_to=msg)
 
 
 def _local_model(

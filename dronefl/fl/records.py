@@ -37,6 +37,9 @@ WEIGHTS_KEY = "weights"
 LABEL_SOURCES = ("ground_truth", "tracks")
 #: Number formats the model weights may travel in (``--weights-dtype``).
 WEIGHT_DTYPES = ("float32", "float16")
+#: How the cloud combines the screened updates (``--aggregation``): the sample-weighted mean
+#: (FedAvg), or one of Flower's robust rules (see :mod:`dronefl.fl.strategies`).
+AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum")
 
 
 class SettingsError(ValueError):
@@ -58,7 +61,11 @@ class FlSettings:
     of the weights on the wire (``float16`` halves the bytes; training stays in fp32);
     ``train_fraction`` the chronologically first part of each drone's windows it trains on, the
     rest being its test set (1.0: train on everything and skip federated evaluation, as in the
-    closed loop, where evaluation is not part of the method).
+    closed loop, where evaluation is not part of the method); ``aggregation`` one of
+    :data:`AGGREGATIONS`; ``round_timeout`` s the cloud waits for the drones' replies in each
+    exchange after the first (a drone that has not answered by then is left out of the round;
+    the first exchange waits for the drones to start up, see ``server_app.StartupGrid``);
+    ``faults`` injected drone faults, for tests (see :mod:`dronefl.fl.faults`; empty: none).
     """
 
     run_dir: str
@@ -77,6 +84,9 @@ class FlSettings:
     labels: str = "ground_truth"
     weights_dtype: str = "float32"
     train_fraction: float = 0.8
+    aggregation: str = "mean"
+    round_timeout: float = 3600.0
+    faults: str = ""
 
     def __post_init__(self) -> None:
         if self.labels not in LABEL_SOURCES:
@@ -94,6 +104,16 @@ class FlSettings:
             raise SettingsError(f"train-fraction: must be in (0, 1], got {self.train_fraction}")
         if not self.lr > 0 or self.proximal_mu < 0:
             raise SettingsError("lr must be > 0 and proximal_mu >= 0")
+        if self.aggregation not in AGGREGATIONS:
+            raise SettingsError(
+                f"aggregation: {self.aggregation!r} is not one of {', '.join(AGGREGATIONS)}"
+            )
+        if not self.round_timeout > 0:
+            raise SettingsError(f"round-timeout: must be > 0 s, got {self.round_timeout}")
+        if self.faults:
+            from dronefl.fl.faults import parse_faults  # imports this module
+
+            parse_faults(self.faults)
 
     @property
     def method_spec(self) -> Method:

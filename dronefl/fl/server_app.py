@@ -12,19 +12,22 @@ for a whole episode and plays one round at a time on new data
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import torch
-from flwr.app import ArrayRecord, ConfigRecord, Context, MetricRecord
+from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MetricRecord
 from flwr.serverapp import Grid, ServerApp
 
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.fl.records import RUN_DIR_KEY, FlSettings, SettingsError, global_part
 from dronefl.fl.strategies import make_strategy
 from dronefl.fl.traffic import CountingGrid, Traffic
+from dronefl.io import crash_point
 from dronefl.models.model import build_model
 
+#: The longest the first exchange with the drones may take (their start-up), s.
+STARTUP_TIMEOUT = 3600.0
 #: Called with each finished round's history entry (e.g. to advance a progress bar).
 RoundCallback = Callable[[dict], None]
 
@@ -63,7 +66,7 @@ def run_server(
     state, offset, history = initial_state(settings), 0, []
     if settings.resume and settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(
-            settings.checkpoint_path, settings.history_path, settings.method
+            settings.checkpoint_path, settings.history_path, settings.method, like=state
         )
         state, offset, history = checkpoint.state, checkpoint.server_round, checkpoint.history
     remaining = settings.rounds - offset
@@ -72,6 +75,29 @@ def run_server(
     driver = RoundDriver(grid, settings, num_drones(settings.run_dir), history)
     driver.play(state, offset + 1, remaining, on_round=on_round)
     return driver.history
+
+
+class StartupGrid:
+    """A Grid whose first exchange waits up to :data:`STARTUP_TIMEOUT` s whatever the round
+    timeout: the drones' first answer includes starting their ClientApps (importing torch,
+    loading data), which can take longer than a round; later exchanges keep the strategy's
+    timeout (``round_timeout``)."""
+
+    def __init__(self, grid: Grid) -> None:
+        self._grid = grid
+        self._started = False
+
+    def __getattr__(self, name: str) -> object:
+        return getattr(self._grid, name)
+
+    def send_and_receive(
+        self, messages: Iterable[Message], *, timeout: float | None = None
+    ) -> Iterable[Message]:
+        if not self._started:
+            timeout = max(timeout or 0.0, STARTUP_TIMEOUT)
+        replies = self._grid.send_and_receive(messages, timeout=timeout)
+        self._started = True
+        return replies
 
 
 class RoundDriver:
@@ -90,7 +116,7 @@ class RoundDriver:
         self.n_drones = n_drones
         self.history: list[dict] = list(history or [])
         self.layout = settings.layout
-        self._grid = CountingGrid(grid)
+        self._grid = CountingGrid(StartupGrid(grid))
 
     @property
     def traffic(self) -> Traffic:
@@ -115,6 +141,7 @@ class RoundDriver:
             settings.proximal_mu,
             first_round - 1,
             evaluate=settings.evaluates,
+            aggregation=settings.aggregation,
         )
         config = ConfigRecord({RUN_DIR_KEY: run_dir} if run_dir else {})
         latest = dict(state)
@@ -123,6 +150,7 @@ class RoundDriver:
             if local_round == 0:  # Flower also calls this before the first round
                 return None
             server_round = local_round + first_round - 1
+            crash_point(f"round-end:{server_round}")
             log = strategy.logs[server_round]
             entry = {
                 "round": server_round,
@@ -150,6 +178,7 @@ class RoundDriver:
             train_config=config,
             evaluate_config=ConfigRecord(dict(config)),
             evaluate_fn=end_of_round,
+            timeout=settings.round_timeout,
         )
         return latest
 

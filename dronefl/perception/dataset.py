@@ -97,8 +97,16 @@ class LabelledScene:
 
     @classmethod
     def from_json(cls, record: dict) -> LabelledScene:
-        """Inverse of :meth:`to_json`."""
-        labels = np.asarray(record["labels"], dtype=float).reshape(-1, 6)
+        """Inverse of :meth:`to_json`; raises ValueError on a wrong shape or a non-finite
+        number."""
+        labels = np.asarray(record["labels"], dtype=float)
+        labels = labels.reshape(0, 6) if labels.size == 0 else labels
+        camera = np.asarray(record["camera_position"], dtype=float)
+        targets = np.asarray(record["targets"], dtype=float).reshape(-1, 4)
+        if labels.ndim != 2 or labels.shape[1] != 6 or camera.shape != (3,):
+            raise ValueError("labels must be rows of 6 numbers and camera_position 3 numbers")
+        if not all(np.isfinite(a).all() for a in (labels, camera, targets, float(record["yaw"]))):
+            raise ValueError("non-finite number")
         return cls(
             environment=record["environment"],
             camera_position=np.asarray(record["camera_position"], dtype=float),
@@ -260,10 +268,16 @@ def read_scenes(path: Path) -> list[tuple[str, LabelledScene]]:
     if not path.is_file():
         raise FileNotFoundError(f"no scene records at {path}: run `dronefl detector dataset`")
     rows = []
-    for n, line in enumerate(path.read_text().splitlines(), start=1):
+    try:
+        lines = path.read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: unreadable scene records ({exc})") from None
+    for n, line in enumerate(lines, start=1):
         try:
             record = json.loads(line)
             rows.append((record["image"], LabelledScene.from_json(record)))
         except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
             raise ValueError(f"{path}:{n}: corrupt scene record ({exc})") from None
+    if not rows:
+        raise ValueError(f"{path}: no scene records")
     return rows

@@ -22,7 +22,9 @@ from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+import onnx
 import onnxruntime as ort
+from onnx import numpy_helper
 
 from dronefl.perception.base import Detector
 from dronefl.perception.render import SceneRenderer
@@ -46,6 +48,15 @@ class Letterbox:
     size: tuple[int, int]
     scale: float
     pad: tuple[float, float]
+
+
+def _check_finite_weights(path: Path) -> None:
+    """Raise ValueError naming ``path`` if a weight of the ONNX model is NaN or infinite."""
+    model = onnx.load(str(path))
+    for tensor in model.graph.initializer:
+        values = numpy_helper.to_array(tensor)
+        if np.issubdtype(values.dtype, np.floating) and not np.isfinite(values).all():
+            raise ValueError(f"{path}: weight {tensor.name!r} holds NaN or inf values")
 
 
 def letterbox(image: np.ndarray, imgsz: int) -> tuple[np.ndarray, Letterbox]:
@@ -112,11 +123,26 @@ class YoloDetector(Detector):
                 str(path), options, providers=["CPUExecutionProvider"]
             )
         except Exception as exc:  # onnxruntime raises its own untyped errors on bad files
-            raise ValueError(f"{path} is not a readable ONNX detector ({exc})") from None
-        model_input = self.session.get_inputs()[0]
+            reason = " ".join(str(exc).split())[:300]
+            raise ValueError(f"{path} is not a readable ONNX detector ({reason})") from None
+        model_input, output = self.session.get_inputs()[0], self.session.get_outputs()[0]
+        in_shape, out_shape = model_input.shape, output.shape
+        if (
+            len(in_shape) != 4
+            or in_shape[1] != 3
+            or not isinstance(in_shape[-1], int)
+            or len(out_shape) != 3
+            or not isinstance(out_shape[1], int)
+            or out_shape[1] < 5
+        ):
+            raise ValueError(
+                f"{path}: not a YOLO detector (input {in_shape}, output {out_shape}; expected "
+                "(1, 3, S, S) -> (1, 4 + classes, candidates))"
+            )
+        _check_finite_weights(path)
         self.input_name = model_input.name
-        self.imgsz = int(model_input.shape[-1])
-        self.n_classes = int(self.session.get_outputs()[0].shape[1]) - 4
+        self.imgsz = int(in_shape[-1])
+        self.n_classes = int(out_shape[1]) - 4
         self.renderer = renderer
         self.conf_threshold = conf_threshold
         self.iou_threshold = iou_threshold

@@ -1,5 +1,8 @@
-"""Each benchmark on tiny sizes: the figures exist, are finite and positive, and the references
-are what they claim to be."""
+"""Each benchmark on tiny sizes: each figure holds exactly the samples asked for, its timed
+calls fit in the wall time the benchmark took (a unit or sample-count error breaks that bound),
+and the references are what they claim to be."""
+
+from time import perf_counter
 
 import numpy as np
 import pytest
@@ -7,14 +10,19 @@ import pytest
 from dronefl.bench.cloud import bench_cloud, filterpy_fusion, fly
 from dronefl.bench.predictor import bench_inference, bench_training, record_windows
 from dronefl.bench.simulator import bench_simulator
+from dronefl.bench.timing import UNITS
 from dronefl.bench.vision import bench_detector, render_frames
 from dronefl.config import load_scenario
 from dronefl.tracking import Fuser, FusionConfig
 
 
-def _positive(figure: dict) -> None:
-    assert np.isfinite([figure["median"], figure["p95"]]).all()
-    assert 0 < figure["median"] <= figure["p95"]
+def _measured(figure: dict, samples: int, elapsed: float) -> None:
+    """``figure`` summarises ``samples`` timings that all happened within ``elapsed`` s: at
+    least half of them last the median or longer, so (samples / 2) x median <= elapsed."""
+    assert figure["samples"] == samples
+    median_s = figure["median"] * UNITS[figure["unit"]]
+    assert median_s > 0 and samples / 2 * median_s <= elapsed
+    assert figure["median"] <= figure["p95"]
 
 
 def test_filterpy_reference_is_our_fusion_without_adaptation_or_gating():
@@ -59,29 +67,35 @@ def test_inference_figures_with_the_stock_reference(recorded):
     _, step = recorded
     readings = []
 
+    started = perf_counter()
     figures = bench_inference(
-        step, calls=3, rounds=1, measure_energy=lambda fn, n: readings.append(n) or {"joules": 1.0}
+        step, calls=3, rounds=2, measure_energy=lambda fn, n: readings.append(n) or {"joules": 1.0}
     )
+    elapsed = perf_counter() - started
 
     ours = figures["predictor_inference"]
-    _positive(ours)
-    _positive(figures["centralized_inference"])
+    for figure in (ours, ours["reference"], figures["centralized_inference"]):
+        _measured(figure, samples=6, elapsed=elapsed)
     assert ours["threads"] == 1 and ours["targets"] == 6
-    assert ours["ratio"] == pytest.approx(ours["reference"]["median"] / ours["median"])
+    # ONNX Runtime runs the step faster than the stock eager build (README: 3.2x).
+    assert ours["ratio"] > 1
     assert set(ours["other_runtimes"]) == {"torch", "torchscript"}
     assert ours["parameters"] < figures["centralized_inference"]["parameters"]
-    assert readings == [3] and ours["energy_reading"] == {"joules": 1.0}
+    assert readings == [6] and ours["energy_reading"] == {"joules": 1.0}
 
 
 def test_training_figures_with_the_stock_reference(recorded):
     data, _ = recorded
-    figures = bench_training(data, rounds=1)
+    started = perf_counter()
+    figures = bench_training(data, rounds=2)
+    elapsed = perf_counter() - started
 
     ours = figures["training_epoch"]
-    _positive(ours)
-    _positive(figures["centralized_training_epoch"])
-    assert ours["windows"] == len(data) and ours["unit"] == "s"
-    assert ours["ratio"] == pytest.approx(ours["reference"]["median"] / ours["median"])
+    for figure in (ours, ours["reference"], figures["centralized_training_epoch"]):
+        _measured(figure, samples=2, elapsed=elapsed)
+    assert ours["windows"] == len(data) == 30 and ours["unit"] == "s"
+    # (No claim on the ratio here: on 30 windows an epoch lasts milliseconds, and on a shared
+    # machine two samples of that are noise; the README's 1.33x is from 3000 windows.)
 
 
 def test_detector_on_rendered_case3_frames():
@@ -90,9 +104,12 @@ def test_detector_on_rendered_case3_frames():
 
     assert [f.drone_id for f in frames] == [1, 2, 3, 4]
     assert {f.image.shape for f in frames} == {(640, 640, 3)}
+    started = perf_counter()
     figures = bench_detector({"crop_field": frames}, scenario.target_ids)
-    _positive(figures["detector"])
-    _positive(figures["render"])
+    _measured(figures["detector"], samples=4, elapsed=perf_counter() - started)
+    # Rendering was timed while the frames were made: each frame's own render time.
+    renders = sorted(f.render_seconds for f in frames)
+    assert figures["render"]["median"] == pytest.approx(1e3 * np.median(renders))
     assert figures["detector"]["samples"] == 4 and figures["detector"]["threads"] == 1
     assert set(figures["detector"]["per_environment"]) == {"crop_field"}
 

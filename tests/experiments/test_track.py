@@ -4,6 +4,7 @@ import json
 
 import numpy as np
 import pytest
+from PIL import Image
 
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
@@ -98,8 +99,20 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained_c
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["tracking"]["prediction_error"] == metrics.tracking.prediction_error
     assert saved["scenario"] == "case1" and saved["method"] == "fixed"
-    for name in ("trajectories.png", "timeseries.png", "episode.npz"):
-        assert (tmp_path / name).stat().st_size > 0
+    # The saved episode: 40 s / 0.2 s = 200 steps, 2 targets, 2 drones; from it the tracking
+    # distance recomputed by hand (drone 1 over target 1, drone 2 over target 2, steps 0-199).
+    with np.load(tmp_path / "episode.npz") as episode:
+        assert episode["target_position"].shape == (201, 2, 2)
+        assert episode["drone_position"].shape == (201, 2, 2)
+        assert episode["prediction"].shape == (200, 2, 2, 2)
+        gap = episode["drone_position"][:-1] - episode["target_position"][:-1]  # (200, 2, 2)
+    assert metrics.tracking.tracking_distance == pytest.approx(
+        (gap**2).sum(axis=-1).mean(), rel=1e-12
+    )
+    for name in ("trajectories.png", "timeseries.png"):
+        with Image.open(tmp_path / name) as image:
+            image.load()  # the whole image decodes
+            assert image.format == "PNG" and min(image.size) > 300
     again = run_episode(config)
     assert again.tracking == metrics.tracking
 

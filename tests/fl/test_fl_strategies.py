@@ -1,11 +1,13 @@
 """Server aggregation: FedAvg's weighted average, screening of bad updates, FedPer, bytes."""
 
+import math
+
 import numpy as np
 import pytest
 import torch
 from flwr.app import Array, ArrayRecord, ConfigRecord, Context, Error, Message, RecordDict
 
-from dronefl.fl.client_app import PERSONAL_KEY, _local_model, handle_train
+from dronefl.fl.client_app import PERSONAL_KEY, _local_model, _windows, handle_train
 from dronefl.fl.methods import METHODS
 from dronefl.fl.records import ClientReport, FlSettings, to_arrays
 from dronefl.fl.server_app import initial_state
@@ -82,16 +84,22 @@ def test_fedprox_sends_mu_and_rounds_continue_after_resume():
     assert config["proximal-mu"] == 0.3 and config["server-round"] == 8
 
 
+def context_with(head: dict[str, torch.Tensor]) -> Context:
+    """Drone 1's (partition 0's) context holding ``head`` as its personal head."""
+    context = Context(
+        run_id=1, node_id=1, node_config={"partition-id": 0}, state=RecordDict(), run_config={}
+    )
+    context.state[PERSONAL_KEY] = to_arrays(head)
+    return context
+
+
 def test_fedper_head_stays_on_the_drone_and_survives_aggregation(case1_run, tmp_path):
     settings = FlSettings(str(case1_run), str(tmp_path), method="fedper", rounds=2, epochs=1)
     body = initial_state(settings)
     assert not any(k.startswith("head.") for k in body)
     # A drone whose personal head is all 7s trains one round.
-    context = Context(
-        run_id=1, node_id=1, node_config={"partition-id": 0}, state=RecordDict(), run_config={}
-    )
     head = {"head.weight": torch.full((2, 16), 7.0), "head.bias": torch.full((2,), 7.0)}
-    context.state[PERSONAL_KEY] = to_arrays(head)
+    context = context_with(head)
     layout = settings.layout
     msg = Message(
         RecordDict({"arrays": layout.pack(body), "config": ConfigRecord({"server-round": 2})}),
@@ -103,7 +111,15 @@ def test_fedper_head_stays_on_the_drone_and_survives_aggregation(case1_run, tmp_
     assert set(sent) == set(body)  # the head never leaves the drone
     assert layout.size == sum(v.numel() for v in body.values())
     trained_head = context.state[PERSONAL_KEY].to_torch_state_dict()
-    assert not torch.equal(trained_head["head.weight"], head["head.weight"])  # it trained
+    # It trained: the all-7s head predicts far too large positions, so every Adam step moves
+    # each head weight down by about lr (Adam's step is lr x m / sqrt(v): +-lr while the
+    # gradient keeps its sign); one epoch is ceil(windows / batch) steps.
+    train_set, _ = _windows(settings.run_dir, 1, settings.windows, settings.labels)
+    steps = math.ceil(len(train_set) / settings.batch_size) * settings.epochs
+    moved = 7.0 - trained_head["head.bias"].numpy()
+    np.testing.assert_allclose(moved, steps * settings.lr, rtol=0.05)
+    step_sizes = np.abs(7.0 - trained_head["head.weight"].numpy())
+    assert step_sizes.max() <= steps * settings.lr * 1.0001 and step_sizes.mean() > 0
     # The cloud averages bodies only; the drone's model for the next round keeps its own head.
     strategy = RobustFedAvg(num_drones=2)
     strategy._sent = {"weights": (layout.size,)}

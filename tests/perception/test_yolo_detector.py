@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from dronefl.config import load_scenario
+from dronefl.perception.dataset import label_scene
 from dronefl.perception.render import SceneRenderer
 from dronefl.perception.yolo import YoloDetector, letterbox, shipped_detector_path
 from dronefl.sim.world import World
@@ -40,12 +41,17 @@ def test_hand_made_crop_field_scene(assert_all_visible_found) -> None:
 
 def test_detections_are_one_per_target_sorted_and_normalised() -> None:
     world = World(SCENARIO, environment="crop_field", seed=0)
+    view = world.camera_views()[0]  # drone 1, the highest, over all six vehicles
     renderer = SceneRenderer.from_scenario(SCENARIO, world.environment)
-    image = renderer.render_view(world.camera_views()[0])
+    image = renderer.render_view(view)
     renderer.close()
+    truth = label_scene(world.camera, SCENARIO, world.environment, view.camera_position,
+                        view.yaw, view.targets, min_visible=0.5)  # fmt: skip
+    assert len(truth.target_ids) >= 2  # the frame shows vehicles: the test cannot pass empty
     detections = YoloDetector().detect_image(image)
     ids = [d.target_id for d in detections]
-    assert ids == sorted(set(ids))
+    assert ids == sorted(set(ids)) and set(ids) <= set(SCENARIO.target_ids)
+    assert set(truth.target_ids.tolist()) <= set(ids)  # every visible vehicle, under its id
     for d in detections:
         assert all(0.0 <= v <= 1.0 for v in d.box) and 0.0 < d.confidence <= 1.0
 
