@@ -409,6 +409,13 @@ TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dr
 PretrainedOption = Annotated[
     Path, typer.Option(help="Cache of pretrained models.", callback=writable_folder)
 ]
+LabelsOption = Annotated[
+    str,
+    typer.Option(
+        "--labels", help="Training labels: smoothed (fused tracks, RTS) | filtered | ground_truth."
+    ),
+]
+FusionOption = Annotated[str, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
 PretrainRoundsOption = Annotated[
     int, typer.Option("--pretrain-rounds", help="FL rounds of the crop-field pretraining.")
 ]
@@ -435,7 +442,8 @@ def track(
     env: Annotated[str, typer.Option("--env", help="Deployment environment.")] = "orchard",
     detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
-    labels: Annotated[str, typer.Option(help="tracks (pseudo-labels) | ground_truth")] = "tracks",
+    labels: LabelsOption = "smoothed",
+    fusion: FusionOption = "robust",
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     weights_dtype: WeightsDtypeOption = "float32",
     pretrained: PretrainedOption = Path("runs/pretrained"),
@@ -462,6 +470,7 @@ def track(
         detector=detector,
         fl_period=fl_period,
         labels=labels,
+        fusion=fusion,
         past_steps=past_steps,
         weights_dtype=weights_dtype,
         pretrained=pretrained,
@@ -504,6 +513,8 @@ def table1(
     ),
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
+    labels: LabelsOption = "smoothed",
+    fusion: FusionOption = "robust",
     weights_dtype: WeightsDtypeOption = "float32",
     pretrained: PretrainedOption = Path("runs/pretrained"),
     pretrain_rounds: PretrainRoundsOption = 20,
@@ -523,7 +534,8 @@ def table1(
     for method in chosen:
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
-        scenario=specs[0], duration=duration, fl_period=fl_period, weights_dtype=weights_dtype,
+        scenario=specs[0], duration=duration, fl_period=fl_period, labels=labels, fusion=fusion,
+        weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
     )  # fmt: skip

@@ -18,6 +18,7 @@ from dronefl.accounting import Communication
 from dronefl.config import Scenario
 from dronefl.io import atomic_savez
 from dronefl.results import load_result, save_result
+from dronefl.tracking.set_distances import SetDistances
 
 
 @dataclass
@@ -129,11 +130,11 @@ class EpisodeMetrics:
     """Everything ``metrics.json`` holds about one closed-loop episode.
 
     ``scenario`` is its name and ``scenario_hash`` the content hash of the scenario that ran;
-    ``tracking`` Table I's metrics; ``sim_seconds`` / ``wall_seconds`` / ``fl_seconds`` in s;
-    ``planner_ms_per_step`` in ms; ``gating_rejections`` and ``track_resets`` counts of the
-    fusion; ``centralized_inputs`` says in words what the centralized baseline's drones sent
-    (``None`` for the other methods); ``config`` the episode's settings as given.
-    """
+    ``tracking`` Table I's metrics; ``set_distances`` the fused tracks' OSPA and GOSPA (m);
+    ``sim_seconds`` / ``wall_seconds`` / ``fl_seconds`` in s; ``planner_ms_per_step`` in ms;
+    ``gating_rejections`` and ``track_resets`` counts of the fusion; ``centralized_inputs`` says in
+    words what the centralized baseline's drones sent (``None`` for the other methods); ``config``
+    the episode's settings as given."""
 
     scenario: str
     scenario_hash: str
@@ -143,6 +144,7 @@ class EpisodeMetrics:
     detector: str
     labels: str
     tracking: TrackingMetrics
+    set_distances: SetDistances
     fl_rounds: tuple[ClosedLoopRound, ...]
     communication: Communication
     sim_seconds: float

@@ -5,8 +5,8 @@ targets and records the step on board, **predicts** its assigned targets' next p
 (L_p = 10, L_f = 1) and **sends** them up (bytes counted); the cloud **fuses** them (one EKF per
 target) and **plans** every drone's acceleration, which is **sent** down; the world **steps**.
 Every ``fl_period`` s of simulated time the method's :class:`~dronefl.learners.Learner` updates
-the models from everything recorded so far, labelled by the fused tracks (pseudo-labels;
-ground truth only as an ablation):
+the models from everything recorded so far, labelled by the fused tracks (pseudo-labels,
+RTS-smoothed over the whole past by default; ground truth only as an ablation):
 
 * ``dronefl``: one federated round through the Flower apps on the simulation engine, which
   stays up for the whole episode (the episode runs as the ServerApp,
@@ -55,11 +55,19 @@ from dronefl.planning import DroneFLPlanner
 from dronefl.planning.base import Plan, Planner
 from dronefl.progress import progress_bar
 from dronefl.sim.world import World
-from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, Track
+from dronefl.tracking import (
+    FUSION_METHODS,
+    LABEL_SOURCES,
+    Fuser,
+    FusionConfig,
+    PositionMeasurement,
+    Track,
+    make_labels,
+    set_distances,
+)
 from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
-LABEL_SOURCES: tuple[str, ...] = ("tracks", "ground_truth")
 
 
 @dataclass(frozen=True)
@@ -68,8 +76,11 @@ class TrackConfig:
 
     ``scenario`` what is flown; ``method`` one of :data:`TRACK_METHODS`; ``duration`` s
     simulated; ``environment`` where it is deployed; ``detector`` on the drones; ``fl_period``
-    s between model updates; ``labels`` ``tracks`` (fused EKF tracks, the paper) or
-    ``ground_truth`` (ablation); ``epochs`` local epochs per update; ``stride`` samples between
+    s between model updates; ``labels`` the training labels' source
+    (:data:`dronefl.tracking.LABEL_SOURCES`: ``smoothed`` fused tracks, the default;
+    ``filtered``, the paper's; ``ground_truth``, an ablation); ``fusion`` the cloud's fusion
+    method (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``);
+    ``epochs`` local epochs per update; ``stride`` samples between
     training windows; ``past_steps`` L_p; ``runtime`` of the on-drone predictor;
     ``weights_dtype`` number format of the model weights exchanged by DroneFL (``float32`` or
     ``float16``); ``pretrained`` folder of the pretrained models; ``pretrain_rounds`` their FL
@@ -85,7 +96,8 @@ class TrackConfig:
     environment: Environment = "orchard"
     detector: str = "projection"
     fl_period: float = 100.0
-    labels: str = "tracks"
+    labels: str = "smoothed"
+    fusion: str = "robust"
     epochs: int = 10
     stride: int = 2
     past_steps: int = 10
@@ -102,6 +114,8 @@ class TrackConfig:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(TRACK_METHODS)}")
         if self.labels not in LABEL_SOURCES:
             raise ValueError(f"--labels: {self.labels!r} is not one of {', '.join(LABEL_SOURCES)}")
+        if self.fusion not in FUSION_METHODS:
+            raise ValueError(f"--fusion: {self.fusion!r} is not one of {', '.join(FUSION_METHODS)}")
         if self.weights_dtype not in WEIGHT_DTYPES:
             raise ValueError(
                 f"--weights-dtype: {self.weights_dtype!r} is not one of {', '.join(WEIGHT_DTYPES)}"
@@ -135,28 +149,30 @@ class TrackConfig:
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
 
-def fusion_config(scenario: Scenario) -> FusionConfig:
-    """EKF settings for the scenario: random-walk targets change velocity by about 1 m/s every
-    second and need a larger process noise than constant-speed ones."""
+def fusion_config(scenario: Scenario, method: str = "robust") -> FusionConfig:
+    """EKF settings for the scenario and fusion ``method``: random-walk targets change
+    velocity by about 1 m/s every second and need a larger process noise than constant-speed
+    ones."""
     random_walk = any(t.motion == "random_walk" for t in scenario.targets)
-    return FusionConfig(acceleration_psd=1.0 if random_walk else 0.1)
+    return FusionConfig(method=method, acceleration_psd=1.0 if random_walk else 0.1)
 
 
-def scenario_fuser(scenario: Scenario) -> Fuser:
-    """The cloud's fusion for ``scenario``: one adaptive EKF per target (:func:`fusion_config`)."""
-    return Fuser(scenario.target_ids, scenario.drone_ids, fusion_config(scenario))
+def scenario_fuser(scenario: Scenario, method: str) -> Fuser:
+    """The cloud's fusion for ``scenario``: one EKF per target fused by ``method``
+    (:data:`dronefl.tracking.FUSION_METHODS`, settings of :func:`fusion_config`)."""
+    return Fuser(scenario.target_ids, scenario.drone_ids, fusion_config(scenario, method))
 
 
 @dataclass(frozen=True)
 class LoopParts:
     """The parts of the closed loop a researcher swaps to compare, each a factory:
     ``detector(name, world)`` the drones' detector (``name`` is ``TrackConfig.detector``),
-    ``fuser(scenario)`` the cloud's fusion, ``planner(scenario)`` the cloud's planner. The
-    predictor and how it learns are the method's (:data:`dronefl.learners.LEARNERS`; FL
-    strategies in :data:`dronefl.fl.methods.METHODS`)."""
+    ``fuser(scenario, method)`` the cloud's fusion (``method`` is ``TrackConfig.fusion``),
+    ``planner(scenario)`` the cloud's planner. The predictor and how it learns are the method's
+    (:data:`dronefl.learners.LEARNERS`; FL strategies in :data:`dronefl.fl.methods.METHODS`)."""
 
     detector: Callable[[str, World], Detector] = make_detector
-    fuser: Callable[[Scenario], Fuser] = scenario_fuser
+    fuser: Callable[[Scenario, str], Fuser] = scenario_fuser
     planner: Callable[[Scenario], Planner] = DroneFLPlanner.from_scenario
 
 
@@ -211,7 +227,7 @@ class ClosedLoop:
             self.detector = CloudVisionDetector.for_world(self.world)
         else:
             self.detector = parts.detector(config.detector, self.world)
-        self.fuser = parts.fuser(scenario)
+        self.fuser = parts.fuser(scenario, config.fusion)
         self.planner = parts.planner(scenario)
         self.counter = ByteCounter()
         self.n_steps = int(round(config.duration * scenario.rate_hz))
@@ -331,10 +347,12 @@ class ClosedLoop:
             self.log.trace[k, self.column[target_id]] = np.trace(track.covariance)
 
     def _labels(self, steps: int) -> np.ndarray:
-        """Training labels ``(steps, N, 2)`` m for the first ``steps`` steps."""
-        if self.config.labels == "ground_truth":
-            return self.log.target_position[:steps].copy()
-        return self.log.track_position[:steps].copy()
+        """Training labels ``(steps, N, 2)`` m for the first ``steps`` steps, NaN where there
+        is none (:func:`dronefl.tracking.make_labels`: smoothed or filtered fused tracks, or the
+        truth as an ablation)."""
+        truth = self.log.target_position[:steps]
+        labels = make_labels(self.config.labels, self.fuser, self.log.t[:steps], truth=truth)
+        return labels.position
 
 
 def _fly(
@@ -377,6 +395,9 @@ def _metrics(config: TrackConfig, loop: ClosedLoop, wall: float) -> EpisodeMetri
         detector=config.detector,
         labels=config.labels,
         tracking=tracking_metrics(loop.log, config.scenario),
+        set_distances=set_distances(
+            loop.log.target_position, loop.log.track_position, config.scenario.dt
+        ),
         fl_rounds=tuple(loop.rounds),
         communication=loop.counter.rates(sim_seconds),
         sim_seconds=sim_seconds,

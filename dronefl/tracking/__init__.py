@@ -12,8 +12,8 @@ from dronefl.tracking.fusion import (
 )
 from dronefl.tracking.labels import LABEL_SOURCES, Labels, LabelSource, make_labels
 from dronefl.tracking.methods import FUSION_METHODS, FusionMethod
-from dronefl.tracking.metrics import TrackingMetrics, tracking_metrics
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
+from dronefl.tracking.set_distances import SetDistances, set_distances
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 __all__ = [
@@ -35,9 +35,9 @@ __all__ = [
     "Track",
     "TrackForecast",
     "TrackHistory",
-    "TrackingMetrics",
+    "SetDistances",
     "UpdateDiagnostics",
     "make_labels",
     "rts_smooth",
-    "tracking_metrics",
+    "set_distances",
 ]

@@ -12,7 +12,7 @@ from dronefl.tracking import (
     FusionConfig,
     PositionMeasurement,
     make_labels,
-    tracking_metrics,
+    set_distances,
 )
 
 DT = 0.2  # s
@@ -77,16 +77,16 @@ def test_ospa_and_gospa_by_hand():
     tracks = truth.copy()
     tracks[:, 0, 0] += 1.0  # target 1 tracked 1 m off
     tracks[:, 1] = np.nan  # target 2 has no track
-    m = tracking_metrics(truth, tracks, DT, cutoff=10.0, order=2.0)
+    m = set_distances(truth, tracks, DT, cutoff=10.0, order=2.0)
     # OSPA: ((1^2 + 10^2) / 2)^(1/2); GOSPA (alpha = 2): (1^2 + 10^2 / 2)^(1/2).
     assert m.ospa == pytest.approx(math.sqrt(50.5), rel=1e-12)
     assert m.gospa == pytest.approx(math.sqrt(51.0), rel=1e-12)
     assert m.gospa_localisation == pytest.approx(1.0, rel=1e-12)
     assert m.gospa_missed == pytest.approx(50.0, rel=1e-12)
     assert m.gospa_false == 0.0
-    perfect = tracking_metrics(truth, truth, DT)
+    perfect = set_distances(truth, truth, DT)
     assert perfect.ospa == 0.0 and perfect.gospa == 0.0
     with pytest.raises(ValueError, match="order"):
-        tracking_metrics(truth, tracks, DT, order=0.5)
+        set_distances(truth, tracks, DT, order=0.5)
     with pytest.raises(ValueError, match=r"\(K, N, 2\)"):
-        tracking_metrics(truth[:, :1], tracks, DT)
+        set_distances(truth[:, :1], tracks, DT)

@@ -23,7 +23,7 @@ DEFAULT_ORDER = 2.0
 
 
 @dataclass(frozen=True)
-class TrackingMetrics:
+class SetDistances:
     """Episode means over steps: ``ospa`` (m) and ``gospa`` (m) distances, with GOSPA's parts
     (m^p; ``gospa = (localisation + missed + false)^(1/p)`` at each step):
     ``gospa_localisation`` the summed ``d^p`` of matched pairs, ``gospa_missed`` and
@@ -39,13 +39,13 @@ class TrackingMetrics:
     order: float
 
 
-def tracking_metrics(
+def set_distances(
     truth: np.ndarray,
     tracks: np.ndarray,
     dt: float,
     cutoff: float = DEFAULT_CUTOFF,
     order: float = DEFAULT_ORDER,
-) -> TrackingMetrics:
+) -> SetDistances:
     """OSPA and GOSPA between ``truth`` ``(K, N, 2)`` m (every target exists at every step) and
     ``tracks`` ``(K, N, 2)`` m (NaN where a target has no track), steps ``dt`` s apart."""
     from stonesoup.metricgenerator.ospametric import GOSPAMetric, OSPAMetric
@@ -83,4 +83,4 @@ def tracking_metrics(
             g["false"],
         )
     mean = values.mean(axis=0)
-    return TrackingMetrics(*(float(v) for v in mean), float(cutoff), float(order))
+    return SetDistances(*(float(v) for v in mean), float(cutoff), float(order))
