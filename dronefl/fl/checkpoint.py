@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dronefl.fl.records import RoundRecord, SettingsError
 from dronefl.io import atomic_savez, atomic_write_json
 
 CHECKPOINT_FORMAT = "dronefl.fl_checkpoint"
@@ -33,7 +34,7 @@ class Checkpoint:
     method: str
     server_round: int
     state: dict[str, torch.Tensor]
-    history: list[dict]
+    history: list[RoundRecord]
 
 
 def save_checkpoint(path: Path, history_path: Path, checkpoint: Checkpoint) -> None:
@@ -46,7 +47,7 @@ def save_checkpoint(path: Path, history_path: Path, checkpoint: Checkpoint) -> N
         server_round=np.array(checkpoint.server_round),
         **arrays,
     )
-    atomic_write_json(history_path, checkpoint.history)
+    atomic_write_json(history_path, [r.to_json() for r in checkpoint.history])
 
 
 def load_checkpoint(path: Path, history_path: Path, method: str) -> Checkpoint:
@@ -79,5 +80,9 @@ def load_checkpoint(path: Path, history_path: Path, method: str) -> Checkpoint:
         raise CheckpointError(f"{history_path}: missing or corrupt round history") from None
     if not isinstance(history, list):
         raise CheckpointError(f"{history_path}: round history must be a list")
-    history = [h for h in history if int(h.get("round", 0)) <= server_round]
-    return Checkpoint(saved_method, server_round, state, history)
+    try:
+        records = [RoundRecord.from_json(entry) for entry in history]
+    except SettingsError as exc:
+        raise CheckpointError(f"{history_path}: {exc}") from None
+    records = [r for r in records if r.server_round <= server_round]
+    return Checkpoint(saved_method, server_round, state, records)
