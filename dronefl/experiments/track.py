@@ -376,14 +376,14 @@ class FederatedLearner:
         _write_round_data(data, records, labels)
         self.state = self.driver.play(self.state, server_round, run_dir=str(data))
         entry = self.driver.history[-1]
-        if entry["round"] != server_round:
+        if entry.server_round != server_round:
             raise RuntimeError(f"federated round {server_round} did not finish")
-        bytes_per_drone = _bytes_per_drone(entry.get("bytes", {}), records)
+        traffic = {"down": entry.bytes_down, "up": entry.bytes_up}
         return self.state, {
             "round": server_round,
-            "train_loss": entry.get("train_loss"),
-            "rejected": entry.get("rejected"),
-            "bytes_per_drone": bytes_per_drone,
+            "train_loss": {str(k): v for k, v in entry.train_loss.items()},
+            "rejected": list(entry.rejected),
+            "bytes_per_drone": _bytes_per_drone(traffic, records),
         }
 
 
