@@ -182,21 +182,70 @@ def _fl_errors() -> tuple[type[Exception], ...]:
     return (SettingsError, CheckpointError, ValueError)
 
 
+SeedsOption = Annotated[
+    str, typer.Option("--seeds", help='Seeds, e.g. "0 1 2 3 4" (recording, model, training).')
+]
+FlScenarioOption = Annotated[
+    str | None,
+    typer.Option("--scenario", "-s", help="Built-in scenario (case1|case2|case3) or YAML path."),
+]
+CaseOption = Annotated[
+    int | None, typer.Option("--case", help="Paper case 1, 2 or 3 (same as --scenario caseN).")
+]
+PresetOption = Annotated[
+    str, typer.Option("--config", help="Training setting: ours (tuned) | paper (E=10, Adam 1e-3).")
+]
+
+
+def _parse_seeds(text: str) -> tuple[int, ...]:
+    try:
+        seeds = tuple(int(s) for s in text.replace(",", " ").split())
+    except ValueError:
+        raise fail(f"--seeds: {text!r} is not a list of integers") from None
+    if not seeds:
+        raise fail("--seeds: give at least one seed")
+    return seeds
+
+
+def _scenario_name(scenario: str | None, case: int | None, default: str) -> str:
+    if scenario is not None and case is not None:
+        raise fail("--scenario and --case name the same thing; give one")
+    if case is not None:
+        if case not in (1, 2, 3):
+            raise fail(f"--case: must be 1, 2 or 3, got {case}")
+        return f"case{case}"
+    name = scenario or default
+    load_scenario(name)  # a bad name or file fails here, before any work
+    return name
+
+
+def _summary_line(method: str, block) -> str:
+    per = " / ".join(f"{v:.3g}" for v in block.final_test_mse_per_drone.values())
+    return (
+        f"{method:18s} final test MSE {block.final_test_mse:.4g} ± {block.final_test_mse_std:.2g}"
+        f" m^2 (per drone {per}; {len(block.seeds)} seeds)"
+    )
+
+
 @app.command("fl-offline")
 def fl_offline(
-    case: Annotated[int, typer.Option("--case", help="Paper case 1, 2 or 3.")] = 1,
+    scenario: FlScenarioOption = None,
+    case: CaseOption = None,
     rounds: RoundsOption = 50,
-    seed: SeedOption = 0,
+    seeds: SeedsOption = "0 1 2 3 4",
     out: OutOption = Path("runs/fl_offline"),
     methods: Annotated[
         str, typer.Option(help="Comma-separated methods (see dronefl.fl.methods).")
-    ] = "fedavg,fedprox,fedper,dronefl,centralized",
+    ] = "fedavg,fedprox,fedper,dronefl,centralized,centralized-small,local",
     duration: Annotated[float, typer.Option(help="Simulated seconds recorded.")] = 600.0,
     stride: StrideOption = 10,
     mu: Annotated[float, typer.Option("--mu", help="FedProx proximal weight mu.")] = 0.01,
+    preset: PresetOption = "ours",
     resume: ResumeOption = False,
     weights_dtype: WeightsDtypeOption = "float32",
-    epochs: Annotated[int, typer.Option(help="Local training epochs per round (E).")] = 10,
+    epochs: Annotated[
+        int | None, typer.Option(help="Local epochs per round E (default: the --config's).")
+    ] = None,
     aggregation: Annotated[
         str, typer.Option(help="Cloud aggregation: mean (FedAvg)|median|trimmed-mean|krum.")
     ] = "mean",
@@ -208,23 +257,26 @@ def fl_offline(
         str, typer.Option(help="Injected drone faults ROUND:DRONE:KIND,... (dronefl.fl.faults).")
     ] = "",
 ) -> None:
-    """Offline FL (paper Fig. 5): record the case, train every method, plot and tabulate.
+    """Offline FL (paper Fig. 5): record the scenario per seed, train every method, plot and
+    tabulate (mean +- std over seeds).
 
-    Example: dronefl fl-offline --case 2 --rounds 50 --seed 0 --out runs/fl/case2
+    Example: dronefl fl-offline --scenario case2 --rounds 50 --seeds "0 1 2" --out runs/fl/case2
     """
     from dronefl.experiments.fl_offline import OfflineConfig, run_fl_offline
     from dronefl.models.model import parameter_summary
 
+    name = _scenario_name(scenario, case, "case1")
     try:
         config = OfflineConfig(
-            case,
+            name,
             out,
             rounds,
-            seed,
+            _parse_seeds(seeds),
             duration,
             stride,
             mu,
             tuple(methods.split(",")),
+            preset,
             resume,
             weights_dtype=weights_dtype,
             epochs=epochs,
@@ -236,27 +288,33 @@ def fl_offline(
         results = run_fl_offline(config)
     except _fl_errors() as exc:
         raise fail(str(exc)) from None
-    for method, block in results["methods"].items():
-        typer.echo(f"{method:18s} final test MSE {block['final_test_mse']:.4g} m^2")
-    typer.echo(f"wrote {out}/ (results.json, fig5_case{case}.png, table.md)")
+    for method, block in results.methods.items():
+        typer.echo(_summary_line(method, block))
+    typer.echo(f"wrote {out}/ (results.json, fig5_{results.scenario}.png, table.md)")
 
 
 @app.command("fl-ablation")
 def fl_ablation(
+    scenario: Annotated[
+        str, typer.Option("--scenario", "-s", help="Comma-separated scenarios (names or YAML).")
+    ] = "case1,case2,case3",
     rounds: RoundsOption = 50,
-    seed: SeedOption = 0,
+    seeds: SeedsOption = "0 1 2 3 4",
     out: OutOption = Path("runs/fl_ablation"),
     stride: StrideOption = 10,
+    preset: PresetOption = "ours",
     resume: ResumeOption = False,
 ) -> None:
-    """DroneFL without AdaIN and without relative positions, Cases 1-3.
+    """DroneFL without AdaIN and without relative positions, on each scenario.
 
-    Example: dronefl fl-ablation --rounds 50 --out runs/fl   (reuses runs/fl/case<N> with --resume)
+    Example: dronefl fl-ablation --rounds 50 --out runs/fl   (reuses runs/fl/<scenario> with
+    --resume)
     """
     from dronefl.experiments.fl_offline import run_ablation
 
+    names = tuple(_scenario_name(n, None, n) for n in scenario.split(","))
     try:
-        run_ablation(out, rounds, seed, stride, resume)
+        run_ablation(out, names, rounds, _parse_seeds(seeds), stride, preset, resume)
     except _fl_errors() as exc:
         raise fail(str(exc)) from None
     typer.echo((out / "ablation.md").read_text())
@@ -264,26 +322,43 @@ def fl_ablation(
 
 @app.command("fl-altitude")
 def fl_altitude(
+    scenario: FlScenarioOption = None,
     rounds: RoundsOption = 50,
-    seed: SeedOption = 0,
+    seeds: SeedsOption = "0 1 2 3 4",
     out: OutOption = Path("runs/fl_altitude"),
-    methods: Annotated[str, typer.Option(help="Comma-separated methods.")] = "fedavg",
+    methods: Annotated[
+        str, typer.Option(help="Comma-separated methods.")
+    ] = "dronefl-no-adain,dronefl",
     stride: StrideOption = 10,
+    preset: PresetOption = "ours",
     resume: ResumeOption = False,
 ) -> None:
     """Altitude motivation study (paper Fig. 4): drone 1's test MSE per round with drone 2 at
-    the same or a different altitude.
+    the same or a 10 m lower altitude (a two-drone scenario, default case1).
 
-    Example: dronefl fl-altitude --rounds 50 --out runs/fl_altitude
+    Example: dronefl fl-altitude --rounds 50 --seeds "0 1 2" --out runs/fl_altitude
     """
     from dronefl.experiments.fl_offline import run_altitude_study
 
+    name = _scenario_name(scenario, None, "case1")
     try:
-        study = run_altitude_study(out, rounds, seed, stride, tuple(methods.split(",")), resume)
+        study = run_altitude_study(
+            out,
+            name,
+            rounds,
+            _parse_seeds(seeds),
+            stride,
+            tuple(methods.split(",")),
+            preset,
+            resume,
+        )
     except _fl_errors() as exc:
         raise fail(str(exc)) from None
     for label, curve in study["curves"].items():
-        typer.echo(f"{label:32s} drone 1 final test MSE {curve['final']:.4g} m^2")
+        typer.echo(
+            f"{label:52s} drone 1 final test MSE {curve['final']:.4g} ± {curve['final_std']:.2g}"
+            " m^2"
+        )
     typer.echo(f"wrote {out}/ (altitude.json, fig4_altitude.png)")
 
 

@@ -37,7 +37,6 @@ from dronefl.models.windows import (
     WindowSpec,
     build_windows,
     ground_truth_labels,
-    position_scale,
 )
 
 P = ParamSpec("P")
@@ -68,7 +67,7 @@ class StockPredictor(nn.Module):
             nn.TransformerDecoderLayer(**layer), num_layers=config.n_decoder_layers
         )
         self.head = nn.Linear(d, 2)
-        self.output_scale = position_scale(config.relative)  # m per head unit
+        self.output_scale = config.frame.scale_m  # m per head unit
 
     def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
         """Positions ``(B, L_f, 2)`` m from ``features`` ``(B, L_p, F)`` and ``altitude``

@@ -1,19 +1,24 @@
 """Offline federated learning (paper Sec. V-B, Fig. 4 and Fig. 5) and the DroneFL ablation.
 
-:func:`run_fl_offline` records a crop-field run of one case with the scripted pilot, then trains
-every requested method for ``rounds`` rounds on it and writes into ``out``::
+:func:`run_fl_offline` records a crop-field run of a scenario with the scripted pilot for every
+seed, trains every requested method for ``rounds`` rounds on it and writes into ``out``::
 
-    data/                 the recorded run (drone_<id>.npz, ground_truth.npz, summary.json)
-    <method>/             history.json + checkpoint.npz per round (resumable)
-    results.json          per method: mean test MSE per round, final MSE, bytes per round
-    fig5_case<N>.png      average test MSE vs round, log scale, every method
-    table.md              final MSE and DroneFL's reduction against each baseline
+    seed_<s>/data/        the recorded run of seed s (drone_<id>.npz, ground_truth.npz, ...)
+    seed_<s>/<method>/    history.json + checkpoint.npz per round (resumable)
+    results.json          :class:`OfflineResults`: per method and seed the test MSE per round
+                          and the final one per drone; mean +- std over seeds
+    fig5_<scenario>.png   average test MSE vs round, log scale, every method that was run
+    table.md              final MSE (mean +- std) and DroneFL's reduction against each method
 
-Federated methods run on Flower's simulation engine (one Ray start per method); the
-centralized upper bound trains the ``large`` model on all drones' pooled windows in the cloud,
-E epochs per round, and is evaluated on each drone's test windows like the others.
-:func:`run_altitude_study` is the paper's motivation study (Fig. 4) and
-:func:`run_ablation` DroneFL without AdaIN and without relative positions on all cases.
+How a method trains is set by its ``training`` kind (:mod:`dronefl.fl.methods`):
+``federated`` methods run on Flower's simulation engine (one Ray start per method and seed);
+``pooled`` ones (``centralized``, ``centralized-small``) train on every drone's pooled training
+windows in the cloud, E epochs per round; ``local`` trains one model per drone on its own
+windows, never aggregated. All are evaluated on each drone's test windows after every round.
+The seed sets the recording, the model initialisation and the training order.
+
+:func:`run_altitude_study` is the paper's motivation study (Fig. 4) and :func:`run_ablation`
+DroneFL without AdaIN and without relative positions on several scenarios.
 """
 
 from __future__ import annotations
@@ -23,7 +28,7 @@ import math
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +38,7 @@ from dronefl.config import Scenario, load_scenario, parse_scenario
 from dronefl.experiments.simulate import scenario_dict, simulate
 from dronefl.fl.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from dronefl.fl.methods import ABLATION_METHODS, FIG5_METHODS, METHODS
-from dronefl.fl.records import FlSettings
+from dronefl.fl.records import PRESETS, FlSettings, RoundRecord
 from dronefl.fl.server_app import initial_state
 from dronefl.fl.simulation import run_federated
 from dronefl.io import atomic_write_json, atomic_write_text, crash_point
@@ -42,140 +47,415 @@ from dronefl.models.model import build_model, count_parameters, describe
 from dronefl.models.train import evaluate, train_local
 from dronefl.models.windows import WindowSet, ground_truth_labels, split_windows
 from dronefl.progress import progress_bar
-from dronefl.report.fl_plots import plot_altitude, plot_fig5
+from dronefl.report.fl_plots import Curve, plot_altitude, plot_fig5
 
-#: Advances a progress bar by one finished round.
-Advance = Callable[[int], None]
+#: Called with each finished round (e.g. to advance a progress bar).
+OnRound = Callable[[RoundRecord], None]
 
-#: FL baselines DroneFL is compared against in the table.
-BASELINES: tuple[str, ...] = ("fedavg", "fedprox", "fedper")
+#: The evaluation seeds (recordings, initialisations, training order). Settings were chosen
+#: on recordings with seeds >= 10 only.
+EVALUATION_SEEDS: tuple[int, ...] = (0, 1, 2, 3, 4)
+#: The paper's three cases, the default scenarios of the ablation.
+PAPER_CASES: tuple[str, ...] = ("case1", "case2", "case3")
 
 
 @dataclass(frozen=True)
 class OfflineConfig:
-    """One offline FL experiment: scenario ``case`` (1-3), ``rounds`` global rounds,
-    ``seed`` (simulation, model initialisation, training), ``duration`` s of recorded flight,
-    window ``stride`` (samples), FedProx ``proximal_mu``, the ``methods`` to train, whether to
-    ``resume`` finished work in ``out``, progress bars, the number format of the weights
-    on the wire (``weights_dtype``), local ``epochs`` per round, the cloud's ``aggregation``
-    rule, the ``round_timeout`` s it waits for the drones and injected drone ``faults`` (see
+    """One offline FL experiment: ``scenario`` (a built-in name such as ``case3`` or a YAML
+    path), ``rounds`` global rounds, ``seeds`` (each: recording, model initialisation,
+    training), ``duration`` s of recorded flight, window ``stride`` (samples), FedProx
+    ``proximal_mu``, the ``methods`` to train, the training ``preset`` (a key of
+    :data:`dronefl.fl.records.PRESETS`), whether to ``resume`` finished work in ``out``,
+    progress bars, the number format of the weights on the wire (``weights_dtype``), local
+    ``epochs`` per round (``None``: the preset's), the cloud's ``aggregation`` rule, the
+    ``round_timeout`` s it waits for the drones and injected drone ``faults`` (see
     :class:`FlSettings`)."""
 
-    case: int
+    scenario: str
     out: Path
     rounds: int = 50
-    seed: int = 0
+    seeds: tuple[int, ...] = EVALUATION_SEEDS
     duration: float = 600.0
     stride: int = 10
     proximal_mu: float = 0.01
     methods: tuple[str, ...] = FIG5_METHODS
+    preset: str = "ours"
     resume: bool = False
     progress: bool = True
     weights_dtype: str = "float32"
-    epochs: int = 10
+    epochs: int | None = None
     aggregation: str = "mean"
     round_timeout: float = 3600.0
     faults: str = ""
 
     def __post_init__(self) -> None:
-        if self.case not in (1, 2, 3):
-            raise ValueError(f"--case: must be 1, 2 or 3, got {self.case}")
         if self.rounds < 1:
             raise ValueError(f"--rounds: must be >= 1, got {self.rounds}")
+        if not self.seeds or len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"--seeds: need distinct seeds, got {list(self.seeds)}")
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown:
             raise ValueError(f"--methods: unknown {unknown}; choose from {list(METHODS)}")
+        if self.preset not in PRESETS:
+            raise ValueError(f"--config: unknown {self.preset!r}; choose one of {list(PRESETS)}")
         if not self.duration > 0:
             raise ValueError(f"--duration: must be > 0 s, got {self.duration}")
-        for method in self.methods:  # every FL setting is valid before any work starts
-            self.settings(method, self.out / "data")
+        if self.epochs is not None and self.epochs < 1:
+            raise ValueError(f"--epochs: must be >= 1, got {self.epochs}")
 
-    def settings(self, method: str, run_dir: Path) -> FlSettings:
-        return FlSettings(
-            run_dir=str(run_dir),
-            out_dir=str(self.out / method),
+    def seed_dir(self, seed: int) -> Path:
+        return self.out / f"seed_{seed}"
+
+    def settings(self, method: str, seed: int, scenario: Scenario) -> FlSettings:
+        """The FL settings of ``method`` for ``seed`` (the preset's training setting)."""
+        base = FlSettings(
+            run_dir=str(self.seed_dir(seed) / "data"),
+            out_dir=str(self.seed_dir(seed) / method),
             method=method,
             rounds=self.rounds,
             stride=self.stride,
             proximal_mu=self.proximal_mu,
-            seed=self.seed,
+            seed=seed,
             resume=self.resume,
             weights_dtype=self.weights_dtype,
-            epochs=self.epochs,
+            field_width=scenario.field.width,
+            field_height=scenario.field.height,
             aggregation=self.aggregation,
             round_timeout=self.round_timeout,
             faults=self.faults,
         )
+        settings = PRESETS[self.preset].apply(base)
+        return settings if self.epochs is None else replace(settings, epochs=self.epochs)
 
 
-def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> dict:
-    """Record the case (or ``scenario``), train every method, write results, figure, table."""
-    started = time.perf_counter()
-    scenario = scenario or load_scenario(f"case{config.case}")
-    run_dir = config.out / "data"
+@dataclass(frozen=True)
+class SeedResult:
+    """One method trained on one seed's recording: the mean over drones of the test MSE
+    (m^2) after each round, the final one per drone (m^2), bytes down/up per round (all drones
+    together; 0 for training in the cloud), rejected updates by round, and wall seconds."""
+
+    seed: int
+    mean_test_mse: tuple[float, ...]
+    final_test_mse_per_drone: dict[int, float]
+    bytes_down_per_round: tuple[int, ...]
+    bytes_up_per_round: tuple[int, ...]
+    rejected: dict[int, tuple[str, ...]]
+    wall_seconds: float
+
+    @property
+    def final_test_mse(self) -> float:
+        """Mean over drones of the final test MSE, m^2."""
+        return self.mean_test_mse[-1]
+
+    @classmethod
+    def of(cls, seed: int, history: list[RoundRecord], seconds: float) -> SeedResult:
+        rounds = sorted(history, key=lambda r: r.server_round)
+        if any(r.mean_test_mse is None for r in rounds):
+            raise ValueError(f"seed {seed}: a round without test MSE (was evaluation off?)")
+        return cls(
+            seed=seed,
+            mean_test_mse=tuple(float(r.mean_test_mse) for r in rounds),  # type: ignore[arg-type]
+            final_test_mse_per_drone=dict(rounds[-1].test_mse),
+            bytes_down_per_round=tuple(sum(r.bytes_down.values()) for r in rounds),
+            bytes_up_per_round=tuple(sum(r.bytes_up.values()) for r in rounds),
+            rejected={r.server_round: r.rejected for r in rounds if r.rejected},
+            wall_seconds=seconds,
+        )
+
+    def to_json(self) -> dict:
+        return {
+            "seed": self.seed,
+            "final_test_mse": self.final_test_mse,
+            "final_test_mse_per_drone": {
+                str(k): v for k, v in self.final_test_mse_per_drone.items()
+            },
+            "mean_test_mse": list(self.mean_test_mse),
+            "bytes_down_per_round": list(self.bytes_down_per_round),
+            "bytes_up_per_round": list(self.bytes_up_per_round),
+            "rejected": {str(k): list(v) for k, v in self.rejected.items()},
+            "wall_seconds": self.wall_seconds,
+        }
+
+    @classmethod
+    def from_json(cls, raw: dict) -> SeedResult:
+        return cls(
+            seed=int(raw["seed"]),
+            mean_test_mse=tuple(float(v) for v in raw["mean_test_mse"]),
+            final_test_mse_per_drone={
+                int(k): float(v) for k, v in raw["final_test_mse_per_drone"].items()
+            },
+            bytes_down_per_round=tuple(int(v) for v in raw["bytes_down_per_round"]),
+            bytes_up_per_round=tuple(int(v) for v in raw["bytes_up_per_round"]),
+            rejected={int(k): tuple(v) for k, v in raw["rejected"].items()},
+            wall_seconds=float(raw["wall_seconds"]),
+        )
+
+
+@dataclass(frozen=True)
+class MethodResult:
+    """One method over every seed: its architecture (``model`` in words, ``parameters``), how
+    it trained, and one :class:`SeedResult` per seed. ``final_test_mse`` (m^2) and
+    ``final_test_mse_per_drone`` (m^2) are means over seeds, with the population std."""
+
+    method: str
+    model: str
+    parameters: int
+    training: str
+    seeds: tuple[SeedResult, ...] = ()
+
+    def with_seed(self, result: SeedResult) -> MethodResult:
+        kept = tuple(r for r in self.seeds if r.seed != result.seed)
+        return replace(self, seeds=tuple(sorted((*kept, result), key=lambda r: r.seed)))
+
+    def seed_result(self, seed: int) -> SeedResult | None:
+        return next((r for r in self.seeds if r.seed == seed), None)
+
+    @property
+    def final_test_mse(self) -> float:
+        return float(np.mean([r.final_test_mse for r in self.seeds]))
+
+    @property
+    def final_test_mse_std(self) -> float:
+        return float(np.std([r.final_test_mse for r in self.seeds]))
+
+    @property
+    def drones(self) -> tuple[int, ...]:
+        return tuple(sorted(self.seeds[0].final_test_mse_per_drone))
+
+    @property
+    def final_test_mse_per_drone(self) -> dict[int, float]:
+        return {
+            d: float(np.mean([r.final_test_mse_per_drone[d] for r in self.seeds]))
+            for d in self.drones
+        }
+
+    @property
+    def final_test_mse_per_drone_std(self) -> dict[int, float]:
+        return {
+            d: float(np.std([r.final_test_mse_per_drone[d] for r in self.seeds]))
+            for d in self.drones
+        }
+
+    @property
+    def curve(self) -> Curve:
+        """Mean and std over seeds of the average test MSE per round, m^2."""
+        values = np.array([r.mean_test_mse for r in self.seeds])  # (S, R)
+        return Curve(tuple(values.mean(axis=0)), tuple(values.std(axis=0)))
+
+    def to_json(self) -> dict:
+        return {
+            "model": self.model,
+            "parameters": self.parameters,
+            "training": self.training,
+            "seeds_run": [r.seed for r in self.seeds],
+            "final_test_mse": self.final_test_mse,
+            "final_test_mse_std": self.final_test_mse_std,
+            "final_test_mse_per_drone": {
+                str(k): v for k, v in self.final_test_mse_per_drone.items()
+            },
+            "final_test_mse_per_drone_std": {
+                str(k): v for k, v in self.final_test_mse_per_drone_std.items()
+            },
+            "mean_test_mse": list(self.curve.mean),
+            "wall_seconds": sum(r.wall_seconds for r in self.seeds),
+            "per_seed": [r.to_json() for r in self.seeds],
+        }
+
+    @classmethod
+    def from_json(cls, method: str, raw: dict) -> MethodResult:
+        return cls(
+            method=method,
+            model=str(raw["model"]),
+            parameters=int(raw["parameters"]),
+            training=str(raw["training"]),
+            seeds=tuple(SeedResult.from_json(r) for r in raw["per_seed"]),
+        )
+
+
+@dataclass(frozen=True)
+class OfflineResults:
+    """Everything ``results.json`` holds: the scenario, the setting, and one
+    :class:`MethodResult` per method. MSE: m^2, mean over a drone's test windows, the L_f
+    future steps and both axes, then averaged over drones."""
+
+    scenario: str
+    preset: str
+    rounds: int
+    duration_s: float
+    stride: int
+    proximal_mu: float
+    methods: dict[str, MethodResult] = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        return {
+            "scenario": self.scenario,
+            "config": self.preset,
+            "rounds": self.rounds,
+            "duration_s": self.duration_s,
+            "stride": self.stride,
+            "proximal_mu": self.proximal_mu,
+            "mse": "m^2, mean over windows, future steps and both axes; averaged over drones",
+            "methods": {name: block.to_json() for name, block in self.methods.items()},
+        }
+
+    @classmethod
+    def from_json(cls, raw: dict) -> OfflineResults:
+        return cls(
+            scenario=str(raw["scenario"]),
+            preset=str(raw["config"]),
+            rounds=int(raw["rounds"]),
+            duration_s=float(raw["duration_s"]),
+            stride=int(raw["stride"]),
+            proximal_mu=float(raw["proximal_mu"]),
+            methods={m: MethodResult.from_json(m, b) for m, b in raw["methods"].items()},
+        )
+
+    def save(self, path: Path) -> None:
+        atomic_write_json(path, self.to_json())
+
+    @classmethod
+    def load(cls, path: Path) -> OfflineResults:
+        try:
+            return cls.from_json(json.loads(path.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            raise CheckpointError(
+                f"{path}: corrupt results file; remove it or drop --resume"
+            ) from None
+
+
+def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> OfflineResults:
+    """Record the scenario for every seed, train every method, write results, figure, table."""
+    scenario = scenario or load_scenario(config.scenario)
+    for method in config.methods:  # every FL setting is valid before any work starts
+        config.settings(method, config.seeds[0], scenario)
+    results_path = config.out / "results.json"
+    results = OfflineResults(
+        scenario.name,
+        config.preset,
+        config.rounds,
+        config.duration,
+        config.stride,
+        config.proximal_mu,
+    )
+    if config.resume and results_path.is_file():
+        earlier = OfflineResults.load(results_path)
+        if (earlier.scenario, earlier.preset, earlier.rounds) != (
+            results.scenario,
+            results.preset,
+            results.rounds,
+        ):
+            raise CheckpointError(
+                f"{results_path}: results of another experiment ({earlier.scenario}, "
+                f"config {earlier.preset}, {earlier.rounds} rounds); use another --out"
+            )
+        results = replace(results, methods=dict(earlier.methods))
+    for seed in config.seeds:
+        record(config, scenario, seed)
+        for method in config.methods:
+            settings = config.settings(method, seed, scenario)
+            if config.resume and _finished(settings) is not None and _seed_file(settings).is_file():
+                done = _load_seed_result(settings, config)
+            else:
+                if not config.resume:
+                    shutil.rmtree(settings.out_dir, ignore_errors=True)
+                started = time.perf_counter()
+                label = f"{scenario.name} seed {seed} {method}"
+                with progress_bar(label, config.rounds, config.progress) as advance:
+                    history = train_method(settings, advance)
+                done = SeedResult.of(seed, history, time.perf_counter() - started)
+                atomic_write_json(_seed_file(settings), _seed_json(done, config))
+            results.methods[method] = _block(results, settings).with_seed(done)
+            results.save(results_path)
+    if config.resume:
+        results = _gather(config, scenario, results)
+    results.save(results_path)
+    ran = {m: results.methods[m].curve for m in results.methods}
+    plot_fig5(ran, f"{scenario.name}, seeds {_seeds(config.seeds)}", _fig5_path(config, scenario))
+    atomic_write_text(config.out / "table.md", comparison_table([results], tuple(results.methods)))
+    return results
+
+
+def _block(results: OfflineResults, settings: FlSettings) -> MethodResult:
+    """The results block of ``settings.method`` so far (a fresh one if none)."""
+    return results.methods.get(settings.method) or MethodResult(
+        settings.method,
+        describe(settings.model),
+        count_parameters(build_model(settings.model)),
+        settings.method_spec.training,
+    )
+
+
+def _seed_file(settings: FlSettings) -> Path:
+    """Where one finished (method, seed) run keeps its :class:`SeedResult`."""
+    return Path(settings.out_dir) / "result.json"
+
+
+def _seed_json(result: SeedResult, config: OfflineConfig) -> dict:
+    return {"config": config.preset, "rounds": config.rounds, **result.to_json()}
+
+
+def _load_seed_result(settings: FlSettings, config: OfflineConfig) -> SeedResult:
+    path = _seed_file(settings)
+    try:
+        raw = json.loads(path.read_text())
+        if (raw["config"], raw["rounds"]) != (config.preset, config.rounds):
+            raise CheckpointError(
+                f"{path}: a run of config {raw['config']} with {raw['rounds']} rounds, not "
+                f"{config.preset} with {config.rounds}; use another --out"
+            )
+        return SeedResult.from_json(raw)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        if isinstance(exc, CheckpointError):
+            raise
+        raise CheckpointError(f"{path}: corrupt result; remove it or drop --resume") from None
+
+
+def _gather(config: OfflineConfig, scenario: Scenario, results: OfflineResults) -> OfflineResults:
+    """With ``--resume``: every finished method of ``config.seeds`` in ``out``, also those
+    another invocation (e.g. the ablation, or a parallel one on other seeds) wrote."""
+    methods = dict(results.methods)
+    for seed in config.seeds:
+        for path in sorted(config.seed_dir(seed).glob("*/result.json")):
+            method = path.parent.name
+            if method not in METHODS:
+                continue
+            settings = config.settings(method, seed, scenario)
+            if _finished(settings) is None:
+                continue
+            block = methods.get(method) or _block(results, settings)
+            methods[method] = block.with_seed(_load_seed_result(settings, config))
+    return replace(results, methods=methods)
+
+
+def _fig5_path(config: OfflineConfig, scenario: Scenario) -> Path:
+    return config.out / f"fig5_{scenario.name}.png"
+
+
+def _seeds(seeds: tuple[int, ...]) -> str:
+    return " ".join(str(s) for s in seeds)
+
+
+def record(config: OfflineConfig, scenario: Scenario, seed: int) -> Path:
+    """Record (or, resuming, reuse) the crop-field run of ``seed``; returns its folder."""
+    run_dir = config.seed_dir(seed) / "data"
     if not (config.resume and (run_dir / "ground_truth.npz").is_file()):
         simulate(
             scenario,
             environment="crop_field",
             duration=config.duration,
-            seed=config.seed,
+            seed=seed,
             out=run_dir,
             progress=config.progress,
             plot=False,
         )
     load_run(run_dir)  # a corrupt recording fails here, naming the file, before any training
-    results_path = config.out / "results.json"
-    results = {
-        "case": config.case,
-        "scenario": scenario.name,
-        "rounds": config.rounds,
-        "seed": config.seed,
-        "duration_s": config.duration,
-        "stride": config.stride,
-        "epochs": config.epochs,
-        "aggregation": config.aggregation,
-        "proximal_mu": config.proximal_mu,
-        "mse": "m^2, mean over windows, 5 future steps and both axes; averaged over drones",
-        "methods": _earlier_methods(results_path) if config.resume else {},
-    }
-    for method in config.methods:
-        settings = config.settings(method, run_dir)
-        if not config.resume:
-            shutil.rmtree(settings.out_dir, ignore_errors=True)
-        elif method in results["methods"] and _finished_history(settings) is not None:
-            continue  # finished earlier: keep its block (and its timing) as it was
-        t0 = time.perf_counter()
-        with progress_bar(
-            f"case {config.case} {method}", config.rounds, config.progress
-        ) as advance:
-            history = _train_method(settings, advance)
-        results["methods"][method] = summarize(history, settings, time.perf_counter() - t0, run_dir)
-        atomic_write_json(results_path, results)
-    results["wall_seconds_this_invocation"] = time.perf_counter() - started
-    atomic_write_json(results_path, results)
-    plot_fig5(results, config.out / f"fig5_case{config.case}.png", FIG5_METHODS)
-    atomic_write_text(config.out / "table.md", comparison_table([results], FIG5_METHODS))
-    return results
+    return run_dir
 
 
-def _earlier_methods(results_path: Path) -> dict:
-    """Method results of an earlier run in the same folder (kept when resuming, so that e.g.
-    the ablation adds its methods beside Fig. 5's)."""
-    if not results_path.is_file():
-        return {}
-    try:
-        methods = json.loads(results_path.read_text())["methods"]
-    except (OSError, ValueError, KeyError, TypeError):
-        methods = None
-    if not isinstance(methods, dict) or not all(
-        isinstance(block, dict) and "final_test_mse" in block for block in methods.values()
-    ):
-        raise CheckpointError(f"{results_path}: corrupt results file; remove it or drop --resume")
-    return methods
-
-
-def _train_method(settings: FlSettings, advance: Advance) -> list[dict]:
-    done = _finished_history(settings)
+def train_method(settings: FlSettings, advance: Callable[[int], None]) -> list[RoundRecord]:
+    """Train ``settings.method`` as its ``training`` kind says (resuming a checkpoint when
+    ``settings.resume``); returns the round history."""
+    done = _finished(settings)
     if done is not None:
         advance(len(done))
         return done
@@ -188,12 +468,11 @@ def _train_method(settings: FlSettings, advance: Advance) -> list[dict]:
                 like=initial_state(settings),
             ).server_round
         )
-    if settings.method_spec.federated:
-        return run_federated(settings, on_round=lambda _: advance(1))
-    return run_centralized(settings, on_round=lambda _: advance(1))
+    trainer = TRAINERS[settings.method_spec.training]
+    return trainer(settings, lambda _: advance(1))
 
 
-def _finished_history(settings: FlSettings) -> list[dict] | None:
+def _finished(settings: FlSettings) -> list[RoundRecord] | None:
     """The history of a resumed method that already finished all its rounds."""
     if not (settings.resume and settings.checkpoint_path.is_file()):
         return None
@@ -216,38 +495,36 @@ def drone_splits(settings: FlSettings) -> dict[int, tuple[WindowSet, WindowSet]]
     }
 
 
-def run_centralized(
-    settings: FlSettings, on_round: Callable[[dict], None] | None = None
-) -> list[dict]:
-    """The upper bound: the ``large`` model trained in the cloud on every drone's pooled
-    training windows (E epochs per round), evaluated per drone on its test windows."""
+def _resume_point(
+    settings: FlSettings, state: dict[str, torch.Tensor]
+) -> tuple[dict[str, torch.Tensor], int, list[RoundRecord]]:
+    """The state, last finished round and history to continue from (the fresh ``state``,
+    round 0 and no history unless resuming a checkpoint)."""
+    if settings.resume and settings.checkpoint_path.is_file():
+        checkpoint = load_checkpoint(
+            settings.checkpoint_path, settings.history_path, settings.method, like=state
+        )
+        return checkpoint.state, checkpoint.server_round, checkpoint.history
+    return state, 0, []
+
+
+def run_centralized(settings: FlSettings, on_round: OnRound | None = None) -> list[RoundRecord]:
+    """Pooled training in the cloud: the method's model (``large`` for ``centralized``,
+    DroneFL's own for ``centralized-small``) trained on every drone's pooled training windows,
+    E epochs per round, evaluated per drone on its test windows (when the run has them)."""
     torch.set_num_threads(1)
     splits = drone_splits(settings)
     pooled = WindowSet.concat([train for train, _ in splits.values()])
     model = build_model(settings.model, seed=settings.seed)
-    model.load_state_dict(initial_state(settings))
-    offset, history = 0, []
-    if settings.resume and settings.checkpoint_path.is_file():
-        checkpoint = load_checkpoint(
-            settings.checkpoint_path,
-            settings.history_path,
-            settings.method,
-            like=model.state_dict(),
-        )
-        model.load_state_dict(checkpoint.state)
-        offset, history = checkpoint.server_round, checkpoint.history
+    state, offset, history = _resume_point(settings, initial_state(settings))
+    model.load_state_dict(state)
     for server_round in range(offset + 1, settings.rounds + 1):
         stats = train_local(model, pooled, settings.train_config(server_round, 0))
-        test = {d: evaluate(model, test_set) for d, (_, test_set) in splits.items()}
-        entry = {
-            "round": server_round,
-            "mean_test_mse": float(np.mean(list(test.values()))),
-            "test_mse": {str(d): v for d, v in test.items()},
-            "train_loss": {"cloud": stats.loss},
-            "rejected": [],
-            "bytes": {"down": {}, "up": {}},
-        }
+        test = {}
+        if settings.evaluates:
+            test = {d: evaluate(model, test_set) for d, (_, test_set) in splits.items()}
         crash_point(f"round-end:{server_round}")
+        entry = RoundRecord(server_round, test, {0: stats.loss})
         history.append(entry)
         save_checkpoint(
             settings.checkpoint_path,
@@ -259,31 +536,49 @@ def run_centralized(
     return history
 
 
-def summarize(history: list[dict], settings: FlSettings, seconds: float, run_dir: Path) -> dict:
-    """The per-method block of ``results.json``."""
-    method = settings.method_spec
-    rounds = sorted(history, key=lambda h: h["round"])
-    down = [sum(h["bytes"]["down"].values()) for h in rounds]
-    up = [sum(h["bytes"]["up"].values()) for h in rounds]
-    block = {
-        "model": describe(settings.model),
-        "variant": method.variant,
-        "adain": method.adain,
-        "relative": method.relative,
-        "parameters": count_parameters(build_model(settings.model)),
-        "mean_test_mse": [h["mean_test_mse"] for h in rounds],
-        "final_test_mse": rounds[-1]["mean_test_mse"],
-        "final_test_mse_per_drone": rounds[-1]["test_mse"],
-        "bytes_down_per_round": down,
-        "bytes_up_per_round": up,
-        "rejected": {str(h["round"]): h["rejected"] for h in rounds if h["rejected"]},
-        "wall_seconds": seconds,
-    }
-    if not method.federated:
-        # The cloud gets every drone's onboard log once (boxes + odometry; the paper's
-        # centralized baseline ships raw images, far more).
-        block["upload_bytes_once"] = sum(p.stat().st_size for p in run_dir.glob("drone_*.npz"))
-    return block
+def run_local(settings: FlSettings, on_round: OnRound | None = None) -> list[RoundRecord]:
+    """Each drone alone: its own model (same seeded initialisation as FL), trained E epochs
+    per round on its own training windows with the same per-(round, drone) seeds as the
+    FL clients, never aggregated, evaluated on its own test windows. The checkpoint holds
+    every drone's model (keys ``drone_<id>.<parameter>``)."""
+    torch.set_num_threads(1)
+    splits = drone_splits(settings)
+    fresh = build_model(settings.model, seed=settings.seed).state_dict()
+    start = {f"drone_{d}.{k}": v for d in splits for k, v in fresh.items()}
+    state, offset, history = _resume_point(settings, start)
+    models = {}
+    for d in splits:
+        models[d] = build_model(settings.model, seed=settings.seed)
+        prefix = f"drone_{d}."
+        models[d].load_state_dict(
+            {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
+        )
+    for server_round in range(offset + 1, settings.rounds + 1):
+        losses, test = {}, {}
+        for d, (train_set, test_set) in splits.items():
+            stats = train_local(models[d], train_set, settings.train_config(server_round, d))
+            losses[d] = stats.loss
+            if settings.evaluates:
+                test[d] = evaluate(models[d], test_set)
+        entry = RoundRecord(server_round, test, losses)
+        history.append(entry)
+        state = {f"drone_{d}.{k}": v for d, m in models.items() for k, v in m.state_dict().items()}
+        save_checkpoint(
+            settings.checkpoint_path,
+            settings.history_path,
+            Checkpoint(settings.method, server_round, state, history),
+        )
+        if on_round is not None:
+            on_round(entry)
+    return history
+
+
+#: How each ``training`` kind of :mod:`dronefl.fl.methods` runs.
+TRAINERS: dict[str, Callable[[FlSettings, OnRound | None], list[RoundRecord]]] = {
+    "federated": run_federated,
+    "pooled": run_centralized,
+    "local": run_local,
+}
 
 
 def reduction(dronefl: float, baseline: float) -> float:
@@ -291,76 +586,100 @@ def reduction(dronefl: float, baseline: float) -> float:
     return 100.0 * (baseline - dronefl) / baseline if baseline > 0 else math.nan
 
 
-def comparison_table(all_results: list[dict], methods: tuple[str, ...]) -> str:
-    """Markdown: final test MSE of ``methods`` per case, and DroneFL's % reduction."""
-    methods = [m for m in methods if any(m in r["methods"] for r in all_results)]
+def comparison_table(all_results: list[OfflineResults], methods: tuple[str, ...]) -> str:
+    """Markdown: final test MSE (mean +- std over seeds) of ``methods`` per scenario, the
+    per-drone means, and DroneFL's % reduction against each other method."""
+    methods = tuple(m for m in methods if any(m in r.methods for r in all_results))
     lines = [
-        "Final average test MSE (m^2) after the last round; lower is better.",
+        "Final average test MSE (m^2) after the last round, mean +- std over seeds; lower is "
+        "better.",
         "",
-        "| case | " + " | ".join(methods) + " |",
-        "|---|" + "---|" * len(methods),
+        "| scenario | seeds | " + " | ".join(methods) + " |",
+        "|---|---|" + "---|" * len(methods),
     ]
     for r in all_results:
-        cells = [_fmt(r["methods"].get(m, {}).get("final_test_mse")) for m in methods]
-        lines.append(f"| {r['case']} | " + " | ".join(cells) + " |")
-    lines += ["", "DroneFL's MSE reduction against each method, %:", ""]
-    others = [m for m in methods if m != "dronefl"]
-    lines += ["| case | " + " | ".join(others) + " |", "|---|" + "---|" * len(others)]
+        seeds = sorted({s.seed for b in r.methods.values() for s in b.seeds})
+        cells = [_fmt(r.methods.get(m)) for m in methods]
+        lines.append(f"| {r.scenario} | {_seeds(tuple(seeds))} | " + " | ".join(cells) + " |")
+    lines += ["", "Per drone, mean over seeds (m^2):", ""]
+    lines += ["| scenario | method | " + "per drone |", "|---|---|---|"]
     for r in all_results:
-        mine = r["methods"].get("dronefl", {}).get("final_test_mse")
+        for m in methods:
+            if m in r.methods:
+                per = r.methods[m].final_test_mse_per_drone
+                cells = " / ".join(f"{v:.3g}" for v in per.values())
+                lines.append(f"| {r.scenario} | {m} | {cells} |")
+    others = [m for m in methods if m != "dronefl"]
+    lines += ["", "DroneFL's MSE reduction against each method, % (of the seed means):", ""]
+    lines += ["| scenario | " + " | ".join(others) + " |", "|---|" + "---|" * len(others)]
+    for r in all_results:
+        mine = r.methods.get("dronefl")
         cells = []
         for m in others:
-            base = r["methods"].get(m, {}).get("final_test_mse")
-            cells.append("" if mine is None or base is None else f"{reduction(mine, base):+.3f}")
-        lines.append(f"| {r['case']} | " + " | ".join(cells) + " |")
+            base = r.methods.get(m)
+            ok = mine is not None and base is not None
+            cells.append(
+                f"{reduction(mine.final_test_mse, base.final_test_mse):+.1f}" if ok else ""
+            )
+        lines.append(f"| {r.scenario} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 
-def _fmt(value: float | None) -> str:
-    if value is None:
+def _fmt(block: MethodResult | None) -> str:
+    if block is None:
         return ""
-    return f"{value:.3g}"
+    return f"{block.final_test_mse:.3g} ± {block.final_test_mse_std:.2g}"
 
 
 def run_ablation(
     out: Path,
+    scenarios: tuple[str, ...] = PAPER_CASES,
     rounds: int = 50,
-    seed: int = 0,
+    seeds: tuple[int, ...] = EVALUATION_SEEDS,
     stride: int = 10,
+    preset: str = "ours",
     resume: bool = False,
     progress: bool = True,
-) -> list[dict]:
-    """DroneFL, DroneFL without AdaIN and without relative positions, on Cases 1-3.
+) -> list[OfflineResults]:
+    """DroneFL, DroneFL without AdaIN and without relative positions, on each scenario.
 
-    Writes ``out/case<N>/`` per case, ``out/ablation_case<N>.png`` and ``out/ablation.md``.
-    With ``resume`` and the ``out`` of an earlier ``fl-offline`` run, each case's recorded
-    data and finished ``dronefl`` run are reused and the ablation's results are added to its
-    ``results.json``.
+    Writes ``out/<scenario>/`` per scenario, ``out/ablation_<scenario>.png`` and
+    ``out/ablation.md``. With ``resume`` and the ``out`` of an earlier ``fl-offline`` run per
+    scenario (``out/<scenario>``), its recordings and finished ``dronefl`` runs are reused and
+    the ablation's results are added to its ``results.json``.
     """
     all_results = []
-    for case in (1, 2, 3):
+    for name in scenarios:
+        scenario = load_scenario(name)
         config = OfflineConfig(
-            case,
-            out / f"case{case}",
+            name,
+            out / scenario.name,
             rounds,
-            seed,
+            seeds,
             stride=stride,
             methods=ABLATION_METHODS,
+            preset=preset,
             resume=resume,
             progress=progress,
         )
-        results = run_fl_offline(config)
-        plot_fig5(results, out / f"ablation_case{case}.png", ABLATION_METHODS)
+        results = run_fl_offline(config, scenario)
+        curves = {m: results.methods[m].curve for m in ABLATION_METHODS}
+        plot_fig5(curves, f"{scenario.name} ablation", out / f"ablation_{scenario.name}.png")
         all_results.append(results)
     atomic_write_text(out / "ablation.md", comparison_table(all_results, ABLATION_METHODS))
     return all_results
 
 
-def altitude_scenario(altitude_2: float) -> Scenario:
-    """Fig. 4's set-up: two drones, each over its own vehicle (same motion, opposite ends of
-    the field, so different horizontal positions); drone 1 at 30 m, drone 2 at ``altitude_2``."""
-    raw = scenario_dict(load_scenario("case1"))
-    raw["name"] = f"altitude-{altitude_2:g}m"
+def altitude_scenario(base: Scenario, altitude_2: float) -> Scenario:
+    """Fig. 4's set-up from a two-drone ``base`` scenario (each drone over its own vehicle,
+    so different horizontal positions): drone 2 flies at ``altitude_2`` m."""
+    if len(base.drones) != 2:
+        raise ValueError(
+            f"--scenario: the altitude study needs a two-drone scenario, {base.name} has "
+            f"{len(base.drones)}"
+        )
+    raw = scenario_dict(base)
+    raw["name"] = f"{base.name}-altitude-{altitude_2:g}m"
     raw["description"] = "Fig. 4 motivation study"
     raw["drones"][1]["altitude"] = altitude_2
     return parse_scenario(raw, source=raw["name"])
@@ -368,40 +687,58 @@ def altitude_scenario(altitude_2: float) -> Scenario:
 
 def run_altitude_study(
     out: Path,
+    scenario: str = "case1",
     rounds: int = 50,
-    seed: int = 0,
+    seeds: tuple[int, ...] = EVALUATION_SEEDS,
     stride: int = 10,
-    methods: tuple[str, ...] = ("fedavg",),
+    methods: tuple[str, ...] = ("dronefl-no-adain", "dronefl"),
+    preset: str = "ours",
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
-    """Drone 1's test MSE per round when drone 2 flies at (almost) the same altitude (29.9 m
-    vs 30 m; scenarios need distinct altitudes) or a different one (20 m). Writes
+    """Drone 1's test MSE per round (mean over seeds) when drone 2 flies at (almost) drone 1's
+    altitude (0.1 m lower: scenarios need distinct altitudes) or 10 m lower. Writes
     ``out/altitude.json`` and ``out/fig4_altitude.png``."""
-    study: dict = {"rounds": rounds, "seed": seed, "drone": 1, "curves": {}}
-    for label, altitude in (("same altitude", 29.9), ("different altitude", 20.0)):
+    base = load_scenario(scenario)
+    altitude_1 = base.drones[0].altitude
+    study: dict = {"scenario": base.name, "rounds": rounds, "seeds": list(seeds), "drone": 1}
+    study["curves"] = {}
+    curves = {}
+    for label, altitude in (("same altitude", altitude_1 - 0.1), ("different", altitude_1 - 10)):
         config = OfflineConfig(
-            1,
+            scenario,
             out / label.replace(" ", "_"),
             rounds,
-            seed,
+            seeds,
             stride=stride,
             methods=methods,
+            preset=preset,
             resume=resume,
             progress=progress,
         )
-        results = run_fl_offline(config, altitude_scenario(altitude))
-        for method, block in results["methods"].items():
-            history = _history(config.settings(method, config.out / "data"))
-            study["curves"][f"{method}, {label}"] = {
+        results = run_fl_offline(config, altitude_scenario(base, altitude))
+        for method in methods:
+            first = base.drones[0].id
+            per_seed = np.array(
+                [_history_of_drone(config, method, s, first, base) for s in seeds]
+            )  # (S, R)
+            name = f"{method}, {label} (drone 2 at {altitude:g} m)"
+            curves[name] = Curve(tuple(per_seed.mean(axis=0)), tuple(per_seed.std(axis=0)))
+            study["curves"][name] = {
                 "altitude_drone_2": altitude,
-                "drone_1_test_mse": [h["test_mse"]["1"] for h in history],
-                "final": block["final_test_mse_per_drone"]["1"],
+                "drone_1_test_mse": list(curves[name].mean),
+                "drone_1_test_mse_std": list(curves[name].std),
+                "final": results.methods[method].final_test_mse_per_drone[first],
+                "final_std": results.methods[method].final_test_mse_per_drone_std[first],
             }
     atomic_write_json(out / "altitude.json", study)
-    plot_altitude(study, out / "fig4_altitude.png")
+    plot_altitude(curves, out / "fig4_altitude.png")
     return study
 
 
-def _history(settings: FlSettings) -> list[dict]:
-    return load_checkpoint(settings.checkpoint_path, settings.history_path, settings.method).history
+def _history_of_drone(
+    config: OfflineConfig, method: str, seed: int, drone: int, scenario: Scenario
+) -> list[float]:
+    settings = config.settings(method, seed, scenario)
+    history = load_checkpoint(settings.checkpoint_path, settings.history_path, method).history
+    return [r.test_mse[drone] for r in history]

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from dronefl.fl.records import RoundRecord, SettingsError
 from dronefl.io import atomic_savez, atomic_write_json
 
 CHECKPOINT_FORMAT = "dronefl.fl_checkpoint"
@@ -36,12 +37,12 @@ class Checkpoint:
     method: str
     server_round: int
     state: dict[str, torch.Tensor]
-    history: list[dict]
+    history: list[RoundRecord]
 
 
 def save_checkpoint(path: Path, history_path: Path, checkpoint: Checkpoint) -> None:
     """Write the history, then the weights (each atomically)."""
-    atomic_write_json(history_path, checkpoint.history)
+    atomic_write_json(history_path, [r.to_json() for r in checkpoint.history])
     arrays = {_PREFIX + k: v.detach().cpu().numpy() for k, v in checkpoint.state.items()}
     atomic_savez(
         path,
@@ -107,7 +108,7 @@ def _check_like(path: Path, state: dict[str, torch.Tensor], like: dict[str, torc
             )
 
 
-def load_history(history_path: Path, server_round: int) -> list[dict]:
+def load_history(history_path: Path, server_round: int) -> list[RoundRecord]:
     """The entries of rounds ``1..server_round`` of a round history (entries of later rounds,
     written just before a kill, are dropped); raises :class:`CheckpointError` naming the file
     when it is missing, corrupt or lacks one of those rounds. An empty history is allowed (a
@@ -117,12 +118,14 @@ def load_history(history_path: Path, server_round: int) -> list[dict]:
         history = json.loads(history_path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError):
         raise CheckpointError(f"{history_path}: missing or corrupt round history") from None
-    if not isinstance(history, list) or not all(
-        isinstance(h, dict) and isinstance(h.get("round"), int) for h in history
-    ):
+    if not isinstance(history, list):
         raise CheckpointError(f"{history_path}: round history must be a list of round entries")
-    kept = [h for h in history if h["round"] <= server_round]
-    if kept and [h["round"] for h in kept] != list(range(1, server_round + 1)):
+    try:
+        records = [RoundRecord.from_json(entry) for entry in history]
+    except SettingsError as exc:
+        raise CheckpointError(f"{history_path}: {exc}") from None
+    kept = [r for r in records if r.server_round <= server_round]
+    if kept and [r.server_round for r in kept] != list(range(1, server_round + 1)):
         raise CheckpointError(
             f"{history_path}: round history does not hold rounds 1..{server_round} in order"
         )

@@ -27,9 +27,11 @@ from flwr.clientapp import ClientApp
 from dronefl.fl.faults import inject
 from dronefl.fl.records import (
     ARRAYS_KEY,
+    CONFIG_KEY,
     DRONE_KEY,
     METRICS_KEY,
     PARTITION_KEY,
+    PERSONAL_KEY,
     ClientReport,
     FlSettings,
     SettingsError,
@@ -41,8 +43,6 @@ from dronefl.io import atomic_savez
 from dronefl.models.model import TrajectoryTransformer, build_model
 from dronefl.models.train import evaluate, proximal_term, train_local
 from dronefl.models.windows import WindowSet, WindowSpec, load_drone_split
-
-PERSONAL_KEY = "personal-head"
 
 
 def build_client_app(defaults: dict | None = None) -> ClientApp:
@@ -155,7 +155,7 @@ def _round_context(
     """The cloud's instructions for this round, the settings with the round's data folder
     (when the cloud named one) and this node's drone id; one torch thread per drone."""
     torch.set_num_threads(1)
-    instructions = TrainInstructions.from_config(msg.content["config"])
+    instructions = TrainInstructions.from_config(msg.content[CONFIG_KEY])
     if instructions.run_dir is not None:
         settings = replace(settings, run_dir=instructions.run_dir)
     return settings, instructions, _drone_id(context, settings)

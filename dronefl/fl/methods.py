@@ -1,31 +1,41 @@
 """The compared methods (paper Sec. V-A, SPEC §5): which model each trains and how.
 
-=================== ========= ===== ======== ===================================================
-method              model     AdaIN relative  federated behaviour
-=================== ========= ===== ======== ===================================================
-fedavg              plain     no    no       FedAvg (McMahan et al., 2017)
-fedprox             plain     no    no       FedAvg + proximal term mu/2 ||w - w_g||^2 (Li 2020)
-fedper              plain     no    no       FedAvg of the body; the output head stays personal
-                                             (Arivazhagan et al., 2019)
-dronefl             dronefl   yes   yes      FedAvg with the position-invariant model
-dronefl-no-adain    dronefl   no    yes      ablation: without AdaIN
-dronefl-absolute    dronefl   yes   no       ablation: without relative positions
-centralized         large     yes   yes      all windows pooled in the cloud (upper bound)
-=================== ========= ===== ======== ===================================================
+================= ======== ===== ======== =================================================
+method            model    AdaIN relative training
+================= ======== ===== ======== =================================================
+fedavg            plain    no    no       federated: FedAvg (McMahan et al., 2017)
+fedprox           plain    no    no       federated: FedAvg + proximal term mu/2 ||w - w_g||^2
+                                          (Li et al., 2020)
+fedper            plain    no    no       federated: FedAvg of the body; the output head
+                                          stays personal (Arivazhagan et al., 2019)
+dronefl           dronefl  yes   yes      federated: FedAvg of the position-invariant model
+dronefl-no-adain  dronefl  no    yes      federated; ablation: without altitude conditioning
+dronefl-absolute  dronefl  yes   no       federated; ablation: without relative positions
+centralized       large    yes   yes      pooled: every drone's windows in the cloud
+centralized-small dronefl  yes   yes      pooled: DroneFL's own architecture, pooled windows
+local             dronefl  yes   yes      local: each drone trains alone, never aggregated
+================= ======== ===== ======== =================================================
+
+Adding a method is one line in :data:`METHODS`; how each ``training`` kind runs is decided
+in one place (:func:`dronefl.experiments.fl_offline.train_method`).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 from dronefl.models.model import PredictorConfig, Variant, predictor_config
+
+Training = Literal["federated", "pooled", "local"]
 
 
 @dataclass(frozen=True)
 class Method:
     """One compared method: its ``name``, model ``variant`` with the ``adain``/``relative``
     switches, whether the output head is ``personal`` (FedPer), whether it uses the
-    ``proximal`` term (FedProx) and whether it is ``federated`` (else centralized)."""
+    ``proximal`` term (FedProx) and how it is trained: ``federated`` (Flower rounds),
+    ``pooled`` (every drone's training windows in the cloud) or ``local`` (each drone alone)."""
 
     name: str
     variant: Variant
@@ -33,12 +43,22 @@ class Method:
     relative: bool
     personal: bool = False
     proximal: bool = False
-    federated: bool = True
+    training: Training = "federated"
 
-    def predictor(self, past_steps: int, future_steps: int) -> PredictorConfig:
-        """The model this method trains for windows of ``past_steps`` -> ``future_steps``."""
+    @property
+    def federated(self) -> bool:
+        return self.training == "federated"
+
+    def predictor(self, past_steps: int, future_steps: int, **overrides: object) -> PredictorConfig:
+        """The model this method trains for windows of ``past_steps`` -> ``future_steps``
+        (``overrides``: further :class:`PredictorConfig` fields, e.g. the AdaIN sites)."""
         return predictor_config(
-            self.variant, past_steps, future_steps, adain=self.adain, relative=self.relative
+            self.variant,
+            past_steps,
+            future_steps,
+            adain=self.adain,
+            relative=self.relative,
+            **overrides,
         )
 
 
@@ -51,11 +71,22 @@ METHODS: dict[str, Method] = {
         Method("dronefl", "dronefl", adain=True, relative=True),
         Method("dronefl-no-adain", "dronefl", adain=False, relative=True),
         Method("dronefl-absolute", "dronefl", adain=True, relative=False),
-        Method("centralized", "large", adain=True, relative=True, federated=False),
+        Method("centralized", "large", adain=True, relative=True, training="pooled"),
+        Method("centralized-small", "dronefl", adain=True, relative=True, training="pooled"),
+        Method("local", "dronefl", adain=True, relative=True, training="local"),
     )
 }
 
-#: The methods of the paper's Fig. 5, in plotting order.
-FIG5_METHODS: tuple[str, ...] = ("fedavg", "fedprox", "fedper", "dronefl", "centralized")
+#: The methods of the paper's Fig. 5 and the two references that say what FL must reach
+#: (``centralized-small``) and beat (``local``), in plotting order.
+FIG5_METHODS: tuple[str, ...] = (
+    "fedavg",
+    "fedprox",
+    "fedper",
+    "dronefl",
+    "centralized",
+    "centralized-small",
+    "local",
+)
 #: The ablation of DroneFL's two design choices.
 ABLATION_METHODS: tuple[str, ...] = ("dronefl", "dronefl-no-adain", "dronefl-absolute")

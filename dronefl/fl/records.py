@@ -6,27 +6,31 @@ Everything that crosses the cloud-drone link or the run configuration is convert
 * model state dicts <-> ``ArrayRecord``: named (:func:`to_arrays`, for local storage) or, on
   the wire, one flat vector in fp32 or fp16 (:class:`WeightLayout`),
 * :class:`TrainInstructions` <- the ``ConfigRecord`` a strategy sends,
-* :class:`ClientReport` <-> the ``MetricRecord`` a drone sends back.
+* :class:`ClientReport` <-> the ``MetricRecord`` a drone sends back,
+* :class:`RoundRecord` <-> one entry of ``history.json`` (the round history).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import MISSING, asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
 import torch
-from flwr.app import Array, ArrayRecord, ConfigRecord, MetricRecord
+from flwr.app import Array, ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
 
 from dronefl.fl.methods import METHODS, Method
-from dronefl.models.model import PredictorConfig, TrajectoryTransformer, build_model
+from dronefl.models.model import ADAIN_SITES, PredictorConfig, TrajectoryTransformer, build_model
 from dronefl.models.train import TrainConfig
-from dronefl.models.windows import WindowSpec
+from dronefl.models.windows import PAPER_FIELD_M, WindowSpec
 
 #: Record keys (Flower's strategies use "arrays", "config", "num-examples", "proximal-mu").
 ARRAYS_KEY = "arrays"
+CONFIG_KEY = "config"
 METRICS_KEY = "metrics"
+VALUE_KEY = "value"
+MEAN_TEST_MSE_KEY = "mean-test-mse"
 NUM_EXAMPLES_KEY = "num-examples"
 ROUND_KEY = "server-round"
 PROXIMAL_MU_KEY = "proximal-mu"
@@ -34,6 +38,8 @@ PARTITION_KEY = "partition-id"
 DRONE_KEY = "drone-id"
 RUN_DIR_KEY = "run-dir"
 WEIGHTS_KEY = "weights"
+#: Where a FedPer drone keeps its personal output head (``context.state``).
+PERSONAL_KEY = "personal-head"
 LABEL_SOURCES = ("ground_truth", "tracks")
 #: Number formats the model weights may travel in (``--weights-dtype``).
 WEIGHT_DTYPES = ("float32", "float16")
@@ -65,7 +71,13 @@ class FlSettings:
     :data:`AGGREGATIONS`; ``round_timeout`` s the cloud waits for the drones' replies in each
     exchange after the first (a drone that has not answered by then is left out of the round;
     the first exchange waits for the drones to start up, see ``server_app.StartupGrid``);
-    ``faults`` injected drone faults, for tests (see :mod:`dronefl.fl.faults`; empty: none).
+    ``faults`` injected drone faults, for tests (see :mod:`dronefl.fl.faults`; empty: none);
+    ``field_width`` x
+    ``field_height`` m the scenario's field (the frame of absolute positions);
+    ``adain_sites`` (comma-separated, see :data:`dronefl.models.model.ADAIN_SITES`) and
+    ``head_style_init`` where the models with AdaIN condition on the altitude and how the
+    head's style starts. The defaults are DroneFL's tuned setting; :data:`PRESETS` names the
+    paper's.
     """
 
     run_dir: str
@@ -87,6 +99,10 @@ class FlSettings:
     aggregation: str = "mean"
     round_timeout: float = 3600.0
     faults: str = ""
+    field_width: float = PAPER_FIELD_M[0]
+    field_height: float = PAPER_FIELD_M[1]
+    adain_sites: str = ",".join(ADAIN_SITES)
+    head_style_init: str = "altitude"
 
     def __post_init__(self) -> None:
         if self.labels not in LABEL_SOURCES:
@@ -114,6 +130,12 @@ class FlSettings:
             from dronefl.fl.faults import parse_faults  # imports this module
 
             parse_faults(self.faults)
+        if not (self.field_width > 0 and self.field_height > 0):
+            raise SettingsError("field-width and field-height must be > 0 m")
+        try:
+            self.model  # noqa: B018 - builds and validates the predictor configuration
+        except ValueError as exc:
+            raise SettingsError(f"model: {exc}") from None
 
     @property
     def method_spec(self) -> Method:
@@ -121,7 +143,15 @@ class FlSettings:
 
     @property
     def model(self) -> PredictorConfig:
-        return self.method_spec.predictor(self.past_steps, self.future_steps)
+        """The architecture this run trains (the method's, in the run's field, with the
+        run's AdaIN placement)."""
+        return self.method_spec.predictor(
+            self.past_steps,
+            self.future_steps,
+            field_m=(self.field_width, self.field_height),
+            adain_sites=tuple(self.adain_sites.split(",")),
+            head_style_init=self.head_style_init,
+        )
 
     @property
     def layout(self) -> WeightLayout:
@@ -138,6 +168,7 @@ class FlSettings:
             relative=self.model.relative,
             stride=self.stride,
             train_fraction=self.train_fraction,
+            field_m=(self.field_width, self.field_height),
         )
 
     @property
@@ -285,17 +316,137 @@ class ClientReport:
 
     def to_metrics(self) -> MetricRecord:
         return MetricRecord(
-            {DRONE_KEY: self.drone_id, NUM_EXAMPLES_KEY: self.num_examples, "value": self.value}
+            {DRONE_KEY: self.drone_id, NUM_EXAMPLES_KEY: self.num_examples, VALUE_KEY: self.value}
         )
 
     @classmethod
     def from_metrics(cls, metrics: MetricRecord) -> ClientReport:
-        for key in (DRONE_KEY, NUM_EXAMPLES_KEY, "value"):
+        for key in (DRONE_KEY, NUM_EXAMPLES_KEY, VALUE_KEY):
             if key not in metrics:
                 raise SettingsError(f"client metrics: missing {key!r}")
-        value = float(metrics["value"])
+        value = float(metrics[VALUE_KEY])
         return cls(int(metrics[DRONE_KEY]), int(metrics[NUM_EXAMPLES_KEY]), value)
 
     @property
     def finite(self) -> bool:
         return math.isfinite(self.value)
+
+
+def reply_report(content: RecordDict) -> ClientReport:
+    """The :class:`ClientReport` in a drone's reply (its one ``MetricRecord``)."""
+    if len(content.metric_records) != 1:
+        raise SettingsError("reply must hold one MetricRecord")
+    return ClientReport.from_metrics(next(iter(content.metric_records.values())))
+
+
+def reply_drone_id(message: Message) -> int | None:
+    """The drone id a reply names in its metrics, or None (a failed or empty reply)."""
+    if not message.has_content():
+        return None
+    for metrics in message.content.metric_records.values():
+        if DRONE_KEY in metrics:
+            return int(metrics[DRONE_KEY])
+    return None
+
+
+def round_of(message: Message) -> int:
+    """The global round a strategy wrote into a message's config (0 if none)."""
+    for config in message.content.config_records.values():
+        if ROUND_KEY in config:
+            return int(config[ROUND_KEY])
+    return 0
+
+
+def mean_test_mse_metrics(value: float) -> MetricRecord:
+    """What ``aggregate_evaluate`` returns to Flower: the round's mean test MSE (m^2)."""
+    return MetricRecord({MEAN_TEST_MSE_KEY: value})
+
+
+@dataclass(frozen=True)
+class RoundRecord:
+    """One finished global round, as the server (or the cloud, for pooled training) saw it.
+
+    ``test_mse``: drone id -> MSE (m^2) of the global model on that drone's test windows
+    (empty when rounds do not evaluate); ``train_loss``: drone id -> last-epoch training loss
+    (m^2; key 0 is the cloud for pooled training); ``rejected``: updates left out, with why;
+    ``bytes_down`` / ``bytes_up``: message type (``train``, ``evaluate``) -> bytes sent to /
+    received from all drones this round.
+    """
+
+    server_round: int
+    test_mse: dict[int, float] = field(default_factory=dict)
+    train_loss: dict[int, float] = field(default_factory=dict)
+    rejected: tuple[str, ...] = ()
+    bytes_down: dict[str, int] = field(default_factory=dict)
+    bytes_up: dict[str, int] = field(default_factory=dict)
+
+    @property
+    def mean_test_mse(self) -> float | None:
+        """Unweighted mean over drones of the test MSE, m^2 (the paper's "average test MSE
+        across drones"); None when no drone evaluated."""
+        if not self.test_mse:
+            return None
+        return float(np.mean(list(self.test_mse.values())))
+
+    def to_json(self) -> dict:
+        """The ``history.json`` entry (string keys for drone ids, as JSON needs)."""
+        return {
+            "round": self.server_round,
+            "mean_test_mse": self.mean_test_mse,
+            "test_mse": {str(k): v for k, v in sorted(self.test_mse.items())},
+            "train_loss": {str(k): v for k, v in sorted(self.train_loss.items())},
+            "rejected": list(self.rejected),
+            "bytes": {"down": dict(self.bytes_down), "up": dict(self.bytes_up)},
+        }
+
+    @classmethod
+    def from_json(cls, entry: dict) -> RoundRecord:
+        """Parse a ``history.json`` entry; raises :class:`SettingsError` naming the field."""
+        try:
+            return cls(
+                server_round=int(entry["round"]),
+                test_mse={int(k): float(v) for k, v in entry["test_mse"].items()},
+                train_loss={int(k): float(v) for k, v in entry["train_loss"].items()},
+                rejected=tuple(str(r) for r in entry["rejected"]),
+                bytes_down={str(k): int(v) for k, v in entry["bytes"]["down"].items()},
+                bytes_up={str(k): int(v) for k, v in entry["bytes"]["up"].items()},
+            )
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise SettingsError(f"round history entry: bad or missing field ({exc})") from None
+
+
+@dataclass(frozen=True)
+class Preset:
+    """A named training setting: local epochs E, Adam's ``lr``, and where AdaIN sits
+    (``adain_sites``, ``head_style_init``); see :class:`FlSettings` for each."""
+
+    name: str
+    epochs: int
+    lr: float
+    adain_sites: str
+    head_style_init: str
+
+    def apply(self, settings: FlSettings) -> FlSettings:
+        """``settings`` with this preset's training setting."""
+        return replace(
+            settings,
+            epochs=self.epochs,
+            lr=self.lr,
+            adain_sites=self.adain_sites,
+            head_style_init=self.head_style_init,
+        )
+
+
+def _default(name: str) -> object:
+    return next(f.default for f in fields(FlSettings) if f.name == name)
+
+
+#: ``ours``: the defaults of :class:`FlSettings` (chosen on recordings with seeds >= 10);
+#: ``paper``: the paper's setting (E = 10, Adam 1e-3, Eq. 6 AdaIN after every encoder layer,
+#: starting as plain normalisation), as first implemented here.
+PRESETS: dict[str, Preset] = {
+    "ours": Preset(
+        "ours", *(_default(k) for k in ("epochs", "lr", "adain_sites", "head_style_init"))
+    ),
+    "paper": Preset("paper", 10, 1e-3, "encoder", "identity"),
+}

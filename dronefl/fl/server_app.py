@@ -20,7 +20,7 @@ from flwr.app import ArrayRecord, ConfigRecord, Context, Message, MetricRecord
 from flwr.serverapp import Grid, ServerApp
 
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-from dronefl.fl.records import RUN_DIR_KEY, FlSettings, SettingsError, global_part
+from dronefl.fl.records import RUN_DIR_KEY, FlSettings, RoundRecord, SettingsError, global_part
 from dronefl.fl.strategies import make_strategy
 from dronefl.fl.traffic import CountingGrid, Traffic
 from dronefl.io import crash_point
@@ -28,8 +28,8 @@ from dronefl.models.model import build_model
 
 #: The longest the first exchange with the drones may take (their start-up), s.
 STARTUP_TIMEOUT = 3600.0
-#: Called with each finished round's history entry (e.g. to advance a progress bar).
-RoundCallback = Callable[[dict], None]
+#: Called with each finished round (e.g. to advance a progress bar).
+RoundCallback = Callable[[RoundRecord], None]
 
 
 def build_server_app(
@@ -61,7 +61,7 @@ def initial_state(settings: FlSettings) -> dict[str, torch.Tensor]:
 
 def run_server(
     grid: Grid, settings: FlSettings, on_round: RoundCallback | None = None
-) -> list[dict]:
+) -> list[RoundRecord]:
     """Run (or resume) ``settings.rounds`` global rounds; returns the round history."""
     state, offset, history = initial_state(settings), 0, []
     if settings.resume and settings.checkpoint_path.is_file():
@@ -110,11 +110,15 @@ class RoundDriver:
     """
 
     def __init__(
-        self, grid: Grid, settings: FlSettings, n_drones: int, history: list[dict] | None = None
+        self,
+        grid: Grid,
+        settings: FlSettings,
+        n_drones: int,
+        history: list[RoundRecord] | None = None,
     ) -> None:
         self.settings = settings
         self.n_drones = n_drones
-        self.history: list[dict] = list(history or [])
+        self.history: list[RoundRecord] = list(history or [])
         self.layout = settings.layout
         self._grid = CountingGrid(StartupGrid(grid))
 
@@ -151,15 +155,7 @@ class RoundDriver:
                 return None
             server_round = local_round + first_round - 1
             crash_point(f"round-end:{server_round}")
-            log = strategy.logs[server_round]
-            entry = {
-                "round": server_round,
-                "mean_test_mse": log.mean_test_mse if log.test_mse else None,
-                "test_mse": {str(k): v for k, v in sorted(log.test_mse.items())},
-                "train_loss": {str(k): v for k, v in sorted(log.train_loss.items())},
-                "rejected": log.rejected,
-                "bytes": self.traffic.of_round(server_round),
-            }
+            entry = strategy.logs[server_round].record(self.traffic.of_round(server_round))
             self.history.append(entry)
             latest.update(self.layout.unpack(arrays))
             save_checkpoint(

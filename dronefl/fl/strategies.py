@@ -25,7 +25,6 @@ personal head, DroneFL is FedAvg of a different model.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from logging import WARNING
@@ -37,7 +36,14 @@ from flwr.serverapp import Grid
 from flwr.serverapp.strategy import FedAvg, FedMedian, FedProx, FedTrimmedAvg, Krum
 
 from dronefl.fl.methods import Method
-from dronefl.fl.records import ARRAYS_KEY, ClientReport, SettingsError
+from dronefl.fl.records import (
+    ARRAYS_KEY,
+    RoundRecord,
+    SettingsError,
+    mean_test_mse_metrics,
+    reply_drone_id,
+    reply_report,
+)
 
 #: Weights larger than this (in absolute value) are "absurd" for this model (its trained
 #: weights are O(1)); such an update is rejected like a non-finite one.
@@ -46,17 +52,24 @@ MAX_ABS_WEIGHT = 1e4
 
 @dataclass
 class RoundLog:
-    """What happened in one global round, as the server saw it."""
+    """What happened in one global round, as the server saw it (collected while the round
+    runs; :meth:`record` freezes it)."""
 
     server_round: int
     train_loss: dict[int, float] = field(default_factory=dict)  # drone -> m^2
     test_mse: dict[int, float] = field(default_factory=dict)  # drone -> m^2
     rejected: list[str] = field(default_factory=list)  # "drone 2: non-finite weights"
 
-    @property
-    def mean_test_mse(self) -> float:
-        """Unweighted mean over drones of the test MSE, m^2 (NaN if no drone reported)."""
-        return float(np.mean(list(self.test_mse.values()))) if self.test_mse else math.nan
+    def record(self, traffic: dict[str, dict[str, int]]) -> RoundRecord:
+        """The finished round with its bytes ``{"down": {type: B}, "up": {type: B}}``."""
+        return RoundRecord(
+            self.server_round,
+            dict(sorted(self.test_mse.items())),
+            dict(sorted(self.train_loss.items())),
+            tuple(self.rejected),
+            dict(traffic["down"]),
+            dict(traffic["up"]),
+        )
 
 
 def screen_reply(reply: Message, expected: dict[str, tuple[int, ...]]) -> str | None:
@@ -73,7 +86,7 @@ def screen_reply(reply: Message, expected: dict[str, tuple[int, ...]]) -> str | 
     if any(tuple(arrays[k].shape) != shape for k, shape in expected.items()):
         return "weights with unexpected shapes"
     try:
-        report = ClientReport.from_metrics(next(iter(content.metric_records.values())))
+        report = reply_report(content)
     except (SettingsError, TypeError, ValueError) as exc:
         return f"bad metrics ({exc})"
     if report.num_examples < 1:
@@ -95,11 +108,6 @@ def _error_summary(reason: str) -> str:
         if "Message: " in line:
             return line.split("Message: ", 1)[1].strip().strip("'<>")
     return lines[-1][:200] if lines else "no reason given"
-
-
-def _drone_id_of(reply: Message) -> int:
-    """The drone id a screened training reply reports."""
-    return ClientReport.from_metrics(next(iter(reply.content.metric_records.values()))).drone_id
 
 
 #: The robust aggregation rules, by ``aggregation`` name, for ``n`` drones.
@@ -130,10 +138,9 @@ class RobustRounds:
 
     def _drone_of(self, reply: Message) -> str:
         node = reply.metadata.src_node_id
-        if reply.has_content():
-            for metrics in reply.content.metric_records.values():
-                if "drone-id" in metrics:
-                    self._drones[node] = int(metrics["drone-id"])
+        drone = reply_drone_id(reply)
+        if drone is not None:
+            self._drones[node] = drone
         return f"drone {self._drones[node]}" if node in self._drones else f"node {node}"
 
     def _ask(self, messages: Iterable[Message]) -> list[Message]:
@@ -179,9 +186,7 @@ class RobustRounds:
             reason = screen_reply(reply, self._sent)
             if reason is None:
                 valid.append(reply)
-                report = ClientReport.from_metrics(
-                    next(iter(reply.content.metric_records.values()))
-                )
+                report = reply_report(reply.content)
                 record.train_loss[report.drone_id] = report.value
             else:
                 name = self._drone_of(reply)
@@ -191,7 +196,7 @@ class RobustRounds:
             log(WARNING, "round %d: no valid update; the global model is kept", record.server_round)
             return None, None
         # In drone order: replies arrive in any order, and floating-point sums depend on it.
-        valid.sort(key=_drone_id_of)
+        valid.sort(key=lambda reply: reply_report(reply.content).drone_id)
         for reply in valid:
             self._drone_of(reply)
         if self._aggregator is not None:
@@ -208,12 +213,14 @@ class RobustRounds:
             if reply.has_error() or len(reply.content.metric_records) != 1:
                 record.rejected.append(f"{self._drone_of(reply)}: evaluation failed")
                 continue
-            report = ClientReport.from_metrics(next(iter(reply.content.metric_records.values())))
+            report = reply_report(reply.content)
             if report.finite:
                 record.test_mse[report.drone_id] = report.value
             else:
                 record.rejected.append(f"drone {report.drone_id}: non-finite test MSE")
-        return MetricRecord({"mean-test-mse": record.mean_test_mse}) if record.test_mse else None
+        if not record.test_mse:
+            return None
+        return mean_test_mse_metrics(float(np.mean(list(record.test_mse.values()))))
 
 
 class RobustFedAvg(RobustRounds, FedAvg):

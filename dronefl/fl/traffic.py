@@ -17,6 +17,8 @@ from flwr.app import Message
 from flwr.serverapp import Grid
 from flwr.supercore.inflatable.inflatable_object import get_all_nested_objects
 
+from dronefl.fl.records import round_of
+
 
 def message_bytes(message: Message) -> int:
     """Serialized size of ``message`` in bytes (metadata, records and arrays)."""
@@ -57,7 +59,7 @@ class CountingGrid:
         self, messages: Iterable[Message], *, timeout: float | None = None
     ) -> Iterable[Message]:
         outgoing = list(messages)
-        server_round = _round_of(outgoing[0]) if outgoing else 0
+        server_round = round_of(outgoing[0]) if outgoing else 0
         for message in outgoing:
             kind = message.metadata.message_type
             self.traffic.add("down", server_round, kind, message_bytes(message))
@@ -66,11 +68,3 @@ class CountingGrid:
             kind = reply.metadata.message_type
             self.traffic.add("up", server_round, kind, message_bytes(reply))
         return replies
-
-
-def _round_of(message: Message) -> int:
-    """The global round a strategy wrote into the message's config (0 if none)."""
-    for config in message.content.config_records.values():
-        if "server-round" in config:
-            return int(config["server-round"])
-    return 0

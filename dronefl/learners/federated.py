@@ -58,19 +58,19 @@ class FederatedLearner(Learner):
         write_round_data(data, records, labels)
         self.state = self.driver.play(self.state, server_round, run_dir=str(data))
         entry = self.driver.history[-1]
-        if entry["round"] != server_round:
+        if entry.server_round != server_round:
             raise RuntimeError(f"federated round {server_round} did not finish")
         # Every drone receives and returns a model of the same size, so the round's train
         # messages split evenly (the diagnostic evaluate messages are not part of the method).
-        traffic = entry.get("bytes", {})
         share = {
-            way: traffic.get(way, {}).get("train", 0) // len(records) for way in ("down", "up")
+            "down": entry.bytes_down.get("train", 0) // len(records),
+            "up": entry.bytes_up.get("train", 0) // len(records),
         }
         drones = [r.drone_id for r in records]
         return ModelUpdate(
             state=self.state,
-            train_loss={int(d): float(v) for d, v in (entry.get("train_loss") or {}).items()},
-            rejected=tuple(str(r) for r in entry.get("rejected") or ()),
+            train_loss=dict(entry.train_loss),
+            rejected=entry.rejected,
             weight_bytes_down={d: share["down"] for d in drones},
             weight_bytes_up={d: share["up"] for d in drones},
         )

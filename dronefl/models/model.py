@@ -8,18 +8,27 @@ Reading order: :class:`PredictorConfig` (what can be changed), the building bloc
       -> [encoder layer -> + AdaIN(altitude)] x n_encoder_layers      memory (B, L_p, d)
     L_f learned queries (L_f, d) + sinusoidal positions L_p .. L_p + L_f - 1
       -> [decoder layer (self-attention, cross-attention to memory)] x n_decoder_layers
-      -> linear head (x, y) x position_scale                            (B, L_f, 2) m
+      -> [AdaIN(altitude) over channels] -> linear head (x, y) x frame scale   (B, L_f, 2) m
 
 The same weights serve every target: targets are just more rows of the batch.
 
-Where AdaIN sits, and why. Instance normalisation over time removes each channel's mean over
-the window, and in this model that mean carries *where* the target is (box centre, drone
-position). Normalising the residual stream itself would throw that away, so each AdaIN is a
-branch added to the residual stream, like every other transformer sublayer:
-``x <- x + AdaIN_h(x)``. The branch carries the window's temporal variations re-scaled by the
-altitude style (image motion times altitude is ground motion), the skip keeps the level.
-It sits after every encoder layer; the decoder side has no AdaIN because the end-to-end loop
-uses ``L_f = 1``, where statistics over one step do not exist.
+Where AdaIN sits, and why. A drone at altitude h sees the ground through a footprint of
+``2 h tan(hfov / 2)`` m: the same box offset in the image is a ground offset proportional to h.
+A model that reads boxes and outputs metres must therefore multiply by h, and a drone that
+always flies at one altitude cannot learn that from its own data: each drone bakes its own
+altitude's scale into all its weights, and FedAvg averages incompatible models (measured: the
+federated model ended 100x worse than the same model on pooled data). Two AdaIN sites:
+
+* ``head``: on the decoder output, just before the linear head, normalised over the channels
+  of each step (so it also exists with L_f = 1), with the style starting at ``mu = 0``,
+  ``sigma = h / 50 m``: the head's output, and so the predicted offset, is proportional to
+  the altitude from the start; A and b then learn what deviates from that. Every drone then
+  learns the same altitude-free map from image to normalised offset.
+* ``encoder``: Eq. 6 as SPEC §4 states it, statistics over time, as a residual branch after
+  each encoder layer (``x <- x + AdaIN_h(x)``: normalising the residual stream itself would
+  erase each window's mean, which says where the target is), starting as plain
+  normalisation. It alone does not help (the paper preset keeps only it); with the head site
+  it does a little (README).
 """
 
 from __future__ import annotations
@@ -31,10 +40,18 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dronefl.models.windows import ALTITUDE_SCALE_M, FEATURE_DIM, position_scale
+from dronefl.models.windows import ALTITUDE_SCALE_M, FEATURE_DIM, PAPER_FIELD_M, PositionFrame
 
 Variant = Literal["dronefl", "plain", "large"]
 VARIANTS: tuple[str, ...] = ("dronefl", "plain", "large")
+#: Where AdaIN layers can sit: ``encoder`` (a residual branch after every encoder layer,
+#: statistics over time) and ``head`` (on the decoder output before the output head,
+#: statistics over channels).
+ADAIN_SITES: tuple[str, ...] = ("encoder", "head")
+#: How a style ``(mu, sigma) = A h + b`` starts: ``identity`` (A = 0, b = (0, 1): plain
+#: normalisation) or ``altitude`` (mu = 0, sigma = h / ALTITUDE_SCALE_M: outputs in proportion
+#: to the altitude, as a camera footprint is).
+STYLE_INITS: tuple[str, ...] = ("identity", "altitude")
 
 
 @dataclass(frozen=True)
@@ -42,10 +59,12 @@ class PredictorConfig:
     """Architecture of the trajectory transformer.
 
     ``past_steps`` L_p and ``future_steps`` L_f are in samples (0.2 s each at 5 Hz).
-    ``adain`` turns on the altitude AdaIN branches; ``relative`` means the model's inputs and
-    outputs are horizontal positions relative to the drone at time t (position invariance),
-    else absolute positions around the field centre; it sets the output scale
-    (:func:`dronefl.models.windows.position_scale`) and how windows must be built.
+    ``adain`` turns on the altitude AdaIN layers at ``adain_sites`` (see :data:`ADAIN_SITES`),
+    the ``head`` one starting from ``head_style_init`` (see :data:`STYLE_INITS`); ``relative``
+    means the model's inputs and outputs are horizontal positions relative to the drone at time
+    t (position invariance), else absolute positions around the centre of a ``field_m`` =
+    (width, height) m field; with ``field_m`` it sets the output scale and how windows must be
+    built (:attr:`frame`).
     """
 
     past_steps: int = 10
@@ -58,9 +77,27 @@ class PredictorConfig:
     d_ff: int = 32
     dropout: float = 0.1
     adain: bool = True
+    adain_sites: tuple[str, ...] = ("encoder", "head")
+    head_style_init: str = "altitude"
     relative: bool = True
+    field_m: tuple[float, float] = PAPER_FIELD_M
+
+    @property
+    def frame(self) -> PositionFrame:
+        """The frame of the model's horizontal positions (inputs and outputs)."""
+        return PositionFrame(self.relative, self.field_m)
 
     def __post_init__(self) -> None:
+        if not set(self.adain_sites) <= set(ADAIN_SITES) or not self.adain_sites:
+            raise ValueError(
+                f"PredictorConfig.adain_sites must be a non-empty subset of {ADAIN_SITES}, "
+                f"got {self.adain_sites}"
+            )
+        if self.head_style_init not in STYLE_INITS:
+            raise ValueError(
+                f"PredictorConfig.head_style_init must be one of {STYLE_INITS}, "
+                f"got {self.head_style_init!r}"
+            )
         for name in ("past_steps", "future_steps", "input_dim", "d_model", "n_heads", "d_ff"):
             if getattr(self, name) < 1:
                 raise ValueError(f"PredictorConfig.{name} must be >= 1, got {getattr(self, name)}")
@@ -69,8 +106,10 @@ class PredictorConfig:
                 f"PredictorConfig.d_model ({self.d_model}) must be a multiple of n_heads "
                 f"({self.n_heads})"
             )
-        if self.adain and self.past_steps < 2:
-            raise ValueError("PredictorConfig.adain needs past_steps >= 2 (statistics over time)")
+        if self.adain and "encoder" in self.adain_sites and self.past_steps < 2:
+            raise ValueError(
+                "PredictorConfig.adain at the encoder needs past_steps >= 2 (statistics over time)"
+            )
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")
 
@@ -113,29 +152,52 @@ class AltitudeAdaIN(nn.Module):
     For an input ``z`` (B, T, C) and altitude ``h`` (B,) m, with the style
     ``(mu_k, sigma_k)_k = A (h / ALTITUDE_SCALE_M) + b`` (learned ``A``, ``b``)::
 
-        o_k = sigma_k (z_k - mean_t(z_k)) / std_t(z_k) + mu_k
+        o_k = sigma_k (z_k - mean(z_k)) / std(z_k) + mu_k
 
-    where mean and (population) std are taken over the time axis of one instance, per channel.
-    ``A`` starts at zero and ``b`` at ``(mu, sigma) = (0, 1)``: plain instance normalisation.
+    where mean and (population) std are taken over the ``axis`` of one instance: ``time``
+    (per channel over the T steps, as SPEC §4 states Eq. 6) or ``channel`` (per step over the C
+    channels, a layer norm whose gain and bias are set by the altitude; it needs only one step,
+    so it also works with L_f = 1).
+
+    ``init`` ``identity``: ``A = 0``, ``b = (0, 1)``, plain normalisation; ``altitude``:
+    ``mu = 0`` and ``sigma = h / ALTITUDE_SCALE_M`` (``A = (0, 1)``, ``b = 0``), so that what
+    follows scales with the altitude from the start, as metres on the ground per unit of image
+    offset do (the footprint is ``2 h tan(hfov / 2)``).
     """
 
-    def __init__(self, channels: int, eps: float = 1e-5) -> None:
+    def __init__(
+        self, channels: int, axis: str = "time", init: str = "identity", eps: float = 1e-5
+    ) -> None:
         super().__init__()
+        if axis not in ("time", "channel"):
+            raise ValueError(f"AltitudeAdaIN axis must be 'time' or 'channel', got {axis!r}")
+        if init not in STYLE_INITS:
+            raise ValueError(f"AltitudeAdaIN init must be one of {STYLE_INITS}, got {init!r}")
         self.eps = eps
+        self.dim = 1 if axis == "time" else 2
         self.style = nn.Linear(1, 2 * channels)
-        nn.init.zeros_(self.style.weight)
+        ones, zeros = torch.ones(channels), torch.zeros(channels)
         with torch.no_grad():
-            self.style.bias.copy_(torch.cat([torch.zeros(channels), torch.ones(channels)]))
+            if init == "identity":
+                self.style.weight.zero_()
+                self.style.bias.copy_(torch.cat([zeros, ones]))
+            else:
+                self.style.weight.copy_(torch.cat([zeros, ones])[:, None])
+                self.style.bias.zero_()
 
     def forward(self, z: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
-        if not torch.jit.is_tracing() and z.shape[1] < 2:  # traced shapes are fixed
-            raise ValueError("AltitudeAdaIN needs at least 2 time steps to normalise over time")
+        if not torch.jit.is_tracing() and z.shape[self.dim] < 2:  # traced shapes are fixed
+            raise ValueError(
+                "AltitudeAdaIN needs at least 2 time steps to normalise over time"
+                if self.dim == 1
+                else "AltitudeAdaIN needs at least 2 channels to normalise over channels"
+            )
         h = (altitude / ALTITUDE_SCALE_M).unsqueeze(-1)  # (B, 1)
         mu, sigma = self.style(h).unsqueeze(1).chunk(2, dim=-1)  # (B, 1, C) each
-        mean = z.mean(dim=1, keepdim=True)  # (B, 1, C)
+        mean = z.mean(dim=self.dim, keepdim=True)  # (B, 1, C) or (B, T, 1)
         centred = z - mean  # (B, T, C)
         # Population variance written out: torch.var over a short middle axis is ~15x slower.
-        var = centred.pow(2).mean(dim=1, keepdim=True)  # (B, 1, C)
+        var = centred.pow(2).mean(dim=self.dim, keepdim=True)
         return sigma * centred * torch.rsqrt(var + self.eps) + mu
 
 
@@ -267,12 +329,18 @@ class TrajectoryTransformer(nn.Module):
         self.register_buffer("pe_past", pe[: config.past_steps].clone(), persistent=False)
         self.register_buffer("pe_future", pe[config.past_steps :].clone(), persistent=False)
         self.encoder = nn.ModuleList(EncoderLayer(config) for _ in range(config.n_encoder_layers))
+        self.encoder_adain = config.adain and "encoder" in config.adain_sites
         self.adain = nn.ModuleList(
-            AltitudeAdaIN(d) for _ in range(config.n_encoder_layers if config.adain else 0)
+            AltitudeAdaIN(d) for _ in range(config.n_encoder_layers if self.encoder_adain else 0)
         )
         self.decoder = nn.ModuleList(DecoderLayer(config) for _ in range(config.n_decoder_layers))
+        self.head_adain = (
+            AltitudeAdaIN(d, axis="channel", init=config.head_style_init)
+            if config.adain and "head" in config.adain_sites
+            else None
+        )
         self.head = nn.Linear(d, 2)
-        self.output_scale = position_scale(config.relative)  # m per head unit
+        self.output_scale = config.frame.scale_m  # m per head unit
 
     def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
         b, t, f = features.shape
@@ -284,11 +352,13 @@ class TrajectoryTransformer(nn.Module):
         x = self.embed(features) + self.pe_past  # (B, L_p, d)
         for k, layer in enumerate(self.encoder):
             x = layer(x)
-            if self.config.adain:
+            if self.encoder_adain:
                 x = x + self.adain[k](x, altitude)  # (B, L_p, d)
         y = (self.queries + self.pe_future).expand(b, -1, -1)  # (B, L_f, d)
         for layer in self.decoder:
             y = layer(y, x)
+        if self.head_adain is not None:
+            y = self.head_adain(y, altitude)  # (B, L_f, d), gain and bias set by the altitude
         return self.head(y) * self.output_scale  # (B, L_f, 2) m
 
     def personal_keys(self) -> tuple[str, ...]:

@@ -103,13 +103,13 @@ class TrajectoryPredictor:
         if columns.size == 0:
             return out
         odometry = odometry.astype(np.float64)
-        origin = window_origin(odometry[-1], self.config.relative)  # (2,)
+        origin = window_origin(odometry[-1], self.config.frame)  # (2,)
         features = window_features(
             np.moveaxis(boxes[:, columns], 1, 0),  # (n, L_p, 4)
             detected[:, columns].T,  # (n, L_p)
             np.broadcast_to(odometry, (columns.size, lp, 12)),
             np.broadcast_to(origin, (columns.size, 2)),
-            self.config.relative,
+            self.config.frame,
         )  # (n, L_p, FEATURE_DIM)
         altitude = np.full(columns.size, odometry[:, 2].mean(), dtype=np.float32)
         positions = self._run(np.ascontiguousarray(features, dtype=np.float32), altitude)

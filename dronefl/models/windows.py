@@ -13,7 +13,8 @@ feature      value                                               typical range
 box          ``2 (cx - 0.5)``, ``2 (cy - 0.5)``, ``w * 10``,     [-1, 1], [0, 2]
              ``h * 10``; all four zero where j was missed
 x, y         ``(x - x_t) / 10 m`` (relative) or                 a few units /
-             ``(x - 80 m) / 80 m``, ``(y - 60 m) / 80 m`` (absolute)  [-1, 1]
+             ``(x - W/2) / (W/2)``, ``(y - H/2) / (W/2)`` (absolute,  [-1, 1]
+             W x H m the scenario's field)
 z            ``z / 50 m``                                        [0.4, 1.2]
 vx, vy, vz   ``v / 3 m/s``                                       [-1, 1]
 attitude     roll, pitch, yaw in rad, rates in rad/s, unscaled   small
@@ -21,9 +22,10 @@ detected     1 where j was detected at that step, else 0         {0, 1}
 ============ =================================================== =========================
 
 Labels are positions in m, minus ``origin``: the drone's odometry (x, y) at time t when
-``relative`` (what the drone knows of itself), else the centre of the paper's 160 m x 120 m
-field (absolute positions, centred so that the baselines' outputs start in a sensible range).
-Predictions are made in the same frame and the origin is added back afterwards.
+``relative`` (what the drone knows of itself), else the centre of the scenario's field
+(absolute positions, centred so that the baselines' outputs start in a sensible range). A
+:class:`PositionFrame` says which, and for absolute positions the field's size. Predictions
+are made in the same frame and the origin is added back afterwards.
 """
 
 from __future__ import annotations
@@ -36,8 +38,7 @@ import numpy as np
 from dronefl.logs import GroundTruth, LogError, OnboardLog, PseudoLabels, load_run
 
 POSITION_SCALE_M = 10.0  # m per unit of relative horizontal position (inputs and outputs)
-FIELD_CENTRE_M = (80.0, 60.0)  # m, origin of absolute positions (the paper's field centre)
-FIELD_SCALE_M = 80.0  # m per unit of absolute horizontal position (half the field width)
+PAPER_FIELD_M = (160.0, 120.0)  # m, width (east) x height (north) of the paper's field
 ALTITUDE_SCALE_M = 50.0  # m per unit of altitude
 SPEED_SCALE_MPS = 3.0  # m/s per unit of velocity (the drones' speed bound)
 BOX_SIZE_SCALE = 10.0  # box width/height multiplier (boxes are a few % of the image)
@@ -46,16 +47,44 @@ FEATURE_DIM = BOX_DIM + ODOMETRY_DIM + 1  # box, odometry, detected flag
 
 
 @dataclass(frozen=True)
+class PositionFrame:
+    """The frame of horizontal positions in features and labels: ``relative`` to the drone's
+    (x, y) at time t (position invariance), or absolute around the centre of a
+    ``field_m`` = (width, height) m field, in units of half its width."""
+
+    relative: bool = True
+    field_m: tuple[float, float] = PAPER_FIELD_M
+
+    def __post_init__(self) -> None:
+        if len(self.field_m) != 2 or not all(v > 0 for v in self.field_m):
+            raise ValueError(
+                f"PositionFrame.field_m must be two positive sizes, got {self.field_m}"
+            )
+
+    @property
+    def scale_m(self) -> float:
+        """Metres per unit of horizontal position in features and model outputs."""
+        return POSITION_SCALE_M if self.relative else self.field_m[0] / 2.0
+
+    @property
+    def field_centre_m(self) -> tuple[float, float]:
+        """Origin (x, y) m of absolute positions: the centre of the field."""
+        return (self.field_m[0] / 2.0, self.field_m[1] / 2.0)
+
+
+@dataclass(frozen=True)
 class WindowSpec:
     """How windows are cut: ``past_steps`` L_p, ``future_steps`` L_f, windows every ``stride``
-    steps, positions ``relative`` to the drone at t, and the chronological ``train_fraction``
-    (1.0: every window is for training, there is no test set)."""
+    steps, positions ``relative`` to the drone at t (else absolute in a ``field_m`` = (width,
+    height) m field), and the chronological ``train_fraction`` (1.0: every window is for
+    training, there is no test set)."""
 
     past_steps: int = 10
     future_steps: int = 5
     relative: bool = True
     stride: int = 1
     train_fraction: float = 0.8
+    field_m: tuple[float, float] = PAPER_FIELD_M
 
     def __post_init__(self) -> None:
         for name in ("past_steps", "future_steps", "stride"):
@@ -65,6 +94,10 @@ class WindowSpec:
             raise ValueError(
                 f"WindowSpec.train_fraction must be in (0, 1], got {self.train_fraction}"
             )
+
+    @property
+    def frame(self) -> PositionFrame:
+        return PositionFrame(self.relative, self.field_m)
 
 
 @dataclass(frozen=True)
@@ -97,17 +130,12 @@ class WindowSet:
         )
 
 
-def position_scale(relative: bool) -> float:
-    """Metres per unit of horizontal position in features and model outputs."""
-    return POSITION_SCALE_M if relative else FIELD_SCALE_M
-
-
-def window_origin(odometry_t: np.ndarray, relative: bool) -> np.ndarray:
+def window_origin(odometry_t: np.ndarray, frame: PositionFrame) -> np.ndarray:
     """Origin (..., 2) m of the windows whose last odometry readings are ``odometry_t``
-    (..., 12): the drone's (x, y) at t when ``relative``, else the field centre."""
-    if relative:
+    (..., 12): the drone's (x, y) at t in a relative ``frame``, else the field centre."""
+    if frame.relative:
         return odometry_t[..., 0:2].astype(np.float64)
-    return np.broadcast_to(np.asarray(FIELD_CENTRE_M), odometry_t.shape[:-1] + (2,))
+    return np.broadcast_to(np.asarray(frame.field_centre_m), odometry_t.shape[:-1] + (2,))
 
 
 def window_features(
@@ -115,13 +143,13 @@ def window_features(
     detected: np.ndarray,
     odometry: np.ndarray,
     origin: np.ndarray,
-    relative: bool,
+    frame: PositionFrame,
 ) -> np.ndarray:
     """Scaled model inputs (see the module table) for windows of any leading shape.
 
     ``boxes`` (..., L, 4) normalised (NaN allowed where missed), ``detected`` (..., L) bool,
     ``odometry`` (..., L, 12), ``origin`` (..., 2) m subtracted from odometry x, y (see
-    :func:`window_origin`). Returns (..., L, FEATURE_DIM) float32.
+    :func:`window_origin`), positions in ``frame``. Returns (..., L, FEATURE_DIM) float32.
     """
     seen = detected[..., None]  # (..., L, 1)
     cx, cy, w, h = np.moveaxis(np.where(seen, boxes, 0.5), -1, 0)  # each (..., L)
@@ -129,7 +157,7 @@ def window_features(
         [2 * (cx - 0.5), 2 * (cy - 0.5), w * BOX_SIZE_SCALE, h * BOX_SIZE_SCALE], axis=-1
     )
     box = np.where(seen, box, 0.0)  # (..., L, 4); missed steps carry no box at all
-    xy = (odometry[..., 0:2] - origin[..., None, :]) / position_scale(relative)
+    xy = (odometry[..., 0:2] - origin[..., None, :]) / frame.scale_m
     z = odometry[..., 2:3] / ALTITUDE_SCALE_M
     v = odometry[..., 3:6] / SPEED_SCALE_MPS
     rest = odometry[..., 6:12]
@@ -178,13 +206,13 @@ def build_windows(
         future_xy = labels[future, column]  # (W, L_f, 2)
         keep = detected.any(axis=1) & np.isfinite(future_xy).all(axis=(1, 2))
         tk = t[keep]
-        origin = window_origin(odometry[tk], spec.relative)
+        origin = window_origin(odometry[tk], spec.frame)
         features = window_features(
             log.boxes[past[keep], column],
             detected[keep],
             odometry[past[keep]],
             origin,
-            spec.relative,
+            spec.frame,
         )
         parts.append(
             WindowSet(

@@ -3,59 +3,76 @@
 from __future__ import annotations
 
 import io
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
 
 from dronefl.io import atomic_write_bytes  # noqa: E402
 
-#: Display names and colours, in the paper's legend order.
+#: Display names and colours, in the paper's legend order; other methods get the default cycle.
 STYLE: dict[str, tuple[str, str]] = {
     "fedavg": ("FedAvg", "tab:blue"),
     "fedprox": ("FedProx", "tab:orange"),
     "fedper": ("FedPer", "tab:green"),
     "dronefl": ("DroneFL", "tab:red"),
     "centralized": ("Centralized", "black"),
+    "centralized-small": ("Centralized (DroneFL's model)", "tab:gray"),
+    "local": ("Local only", "tab:olive"),
     "dronefl-no-adain": ("DroneFL w/o AdaIN", "tab:purple"),
     "dronefl-absolute": ("DroneFL w/o relative pos.", "tab:brown"),
 }
 
 
-def plot_fig5(results: dict, path: Path, methods: tuple[str, ...]) -> Path:
-    """Average test MSE across drones (m^2, log scale) vs global round for ``methods``."""
-    fig, ax = plt.subplots(figsize=(5.0, 3.6))
-    for method in methods:
-        block = results["methods"].get(method)
-        if block is None:
-            continue
+@dataclass(frozen=True)
+class Curve:
+    """A test MSE per round (m^2): the ``mean`` over seeds and its ``std``."""
+
+    mean: tuple[float, ...]
+    std: tuple[float, ...]
+
+
+def plot_fig5(curves: dict[str, Curve], title: str, path: Path) -> Path:
+    """Average test MSE across drones (m^2, log scale) vs global round for every method in
+    ``curves`` (mean over seeds, the band +- one std)."""
+    fig, ax = plt.subplots(figsize=(5.4, 3.8))
+    for method, curve in curves.items():
         label, colour = STYLE.get(method, (method, None))
-        curve = block["mean_test_mse"]
-        ax.plot(range(1, len(curve) + 1), curve, label=label, color=colour, lw=1.6)
+        _draw(ax, curve, label, colour)
     ax.set_yscale("log")
     ax.set_xlabel("global round")
     ax.set_ylabel("average test MSE (m$^2$)")
-    ax.set_title(f"Case {results['case']} ({results['scenario']})")
+    ax.set_title(title)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     return _save(fig, path)
 
 
-def plot_altitude(study: dict, path: Path) -> Path:
+def plot_altitude(curves: dict[str, Curve], path: Path) -> Path:
     """Drone 1's test MSE (m^2, log scale) per round for each altitude setting (Fig. 4)."""
-    fig, ax = plt.subplots(figsize=(5.0, 3.6))
-    for label, curve in study["curves"].items():
-        values = curve["drone_1_test_mse"]
-        ax.plot(range(1, len(values) + 1), values, label=label, lw=1.6)
+    fig, ax = plt.subplots(figsize=(5.4, 3.8))
+    for label, curve in curves.items():
+        _draw(ax, curve, label, None)
     ax.set_yscale("log")
     ax.set_xlabel("global round")
     ax.set_ylabel("drone 1 test MSE (m$^2$)")
     ax.set_title("Drone 2 at the same vs a different altitude")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=7)
     return _save(fig, path)
+
+
+def _draw(ax: plt.Axes, curve: Curve, label: str, colour: str | None) -> None:
+    rounds = np.arange(1, len(curve.mean) + 1)
+    mean, std = np.asarray(curve.mean), np.asarray(curve.std)
+    (line,) = ax.plot(rounds, mean, label=label, color=colour, lw=1.6)
+    if std.any():
+        low = np.maximum(mean - std, mean * 1e-3)  # the log axis needs positive values
+        ax.fill_between(rounds, low, mean + std, color=line.get_color(), alpha=0.15, lw=0)
 
 
 def _save(fig: plt.Figure, path: Path) -> Path:

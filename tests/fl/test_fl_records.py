@@ -7,8 +7,10 @@ from flwr.app import ConfigRecord
 
 from dronefl.fl.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from dronefl.fl.records import (
+    PRESETS,
     ClientReport,
     FlSettings,
+    RoundRecord,
     SettingsError,
     TrainInstructions,
     WeightLayout,
@@ -72,12 +74,13 @@ def test_weights_travel_as_one_flat_vector(dtype, tolerance):
 def test_checkpoint_round_trip_and_damage(tmp_path):
     path, history_path = tmp_path / "checkpoint.npz", tmp_path / "history.json"
     state = {"w": torch.tensor([1.0, 2.0])}
-    history = [{"round": 1, "mean_test_mse": 3.0}, {"round": 2, "mean_test_mse": 2.0}]
+    history = [RoundRecord(1, {1: 3.0}, {1: 4.0}), RoundRecord(2, {1: 2.0}, {1: 2.5}, ("x",))]
     save_checkpoint(path, history_path, Checkpoint("dronefl", 2, state, history))
 
     back = load_checkpoint(path, history_path, "dronefl")
     assert back.server_round == 2 and back.history == history
     torch.testing.assert_close(back.state["w"], state["w"])
+    assert back.history[1].mean_test_mse == 2.0 and back.history[1].rejected == ("x",)
     with pytest.raises(CheckpointError, match="not 'fedavg'"):
         load_checkpoint(path, history_path, "fedavg")
     path.write_bytes(path.read_bytes()[:40])
@@ -92,3 +95,23 @@ def test_non_finite_checkpoint_is_refused(tmp_path):
     save_checkpoint(path, history_path, Checkpoint("fedavg", 1, {"w": torch.tensor([np.nan])}, []))
     with pytest.raises(CheckpointError, match="non-finite"):
         load_checkpoint(path, history_path, "fedavg")
+
+
+def test_round_records_survive_json_and_name_a_bad_field():
+    record = RoundRecord(3, {1: 0.5, 2: 1.5}, {1: 0.2, 2: 0.4}, ("drone 2: x",),
+                         {"train": 10, "evaluate": 4}, {"train": 12})  # fmt: skip
+    entry = record.to_json()
+    assert entry["mean_test_mse"] == 1.0 and entry["test_mse"] == {"1": 0.5, "2": 1.5}
+    assert RoundRecord.from_json(entry) == record
+    assert RoundRecord(1).mean_test_mse is None  # no evaluation in that round
+    with pytest.raises(SettingsError, match="round history entry"):
+        RoundRecord.from_json({"round": 1})
+
+
+def test_presets_set_the_training_and_the_adain_placement():
+    paper = PRESETS["paper"].apply(FlSettings("r", "o"))
+    assert (paper.epochs, paper.lr) == (10, 1e-3)
+    assert paper.model.adain_sites == ("encoder",)
+    assert PRESETS["ours"].apply(FlSettings("r", "o")) == FlSettings("r", "o")
+    with pytest.raises(SettingsError, match="adain_sites"):
+        FlSettings("r", "o", adain_sites="decoder")

@@ -32,17 +32,16 @@ def test_a_session_plays_rounds_on_new_data_with_fp16_weights(case1_run, tmp_pat
 
     # Assert: two global rounds, both drones trained in each on all their data (no test
     # windows, so no evaluation), weights moved each round.
-    assert [h["round"] for h in history] == [1, 2]
-    assert all(h["mean_test_mse"] is None and h["bytes"]["down"].keys() == {"train"}
-               for h in history)  # fmt: skip
-    assert all(sorted(h["train_loss"]) == ["1", "2"] and h["rejected"] == [] for h in history)
+    assert [h.server_round for h in history] == [1, 2]
+    assert all(h.mean_test_mse is None and h.bytes_down.keys() == {"train"} for h in history)
+    assert all(sorted(h.train_loss) == [1, 2] and h.rejected == () for h in history)
     assert not torch.equal(after_one["embed.weight"], start["embed.weight"])
     assert not torch.equal(after_two["embed.weight"], after_one["embed.weight"])
     # fp16 on the wire: each drone's model message is the 2-byte weights plus < 2 kB framing.
     payload = 2 * settings.layout.size
     for entry in history:
         for direction in ("down", "up"):
-            per_drone = entry["bytes"][direction]["train"] / 2
+            per_drone = getattr(entry, f"bytes_{direction}")["train"] / 2
             assert payload < per_drone < payload + 2_000
 
 

@@ -2,6 +2,7 @@
 
 import json
 import math
+from dataclasses import replace
 
 import pytest
 
@@ -15,18 +16,18 @@ def test_two_drones_two_rounds_with_resume(case1_run, tmp_path):
                           epochs=2, stride=5)  # fmt: skip
     seen = []
     first = run_federated(settings, on_round=seen.append)
-    assert [h["round"] for h in first] == [1] and len(seen) == 1
+    assert [h.server_round for h in first] == [1] and len(seen) == 1
 
-    resumed = FlSettings(**{**settings.__dict__, "rounds": 2, "resume": True})
+    resumed = replace(settings, rounds=2, resume=True)
     history = run_federated(resumed)
 
-    assert [h["round"] for h in history] == [1, 2]
-    assert json.loads(resumed.history_path.read_text()) == history
+    assert [h.server_round for h in history] == [1, 2]
+    assert json.loads(resumed.history_path.read_text()) == [h.to_json() for h in history]
     for entry in history:
-        assert set(entry["test_mse"]) == {"1", "2"}
-        assert all(math.isfinite(v) for v in entry["test_mse"].values())
-        assert entry["rejected"] == []
-        down, up = entry["bytes"]["down"], entry["bytes"]["up"]
+        assert set(entry.test_mse) == {1, 2}
+        assert all(math.isfinite(v) for v in entry.test_mse.values())
+        assert entry.rejected == ()
+        down, up = entry.bytes_down, entry.bytes_up
         assert down["train"] > 2 * 11_000 * 4 and up["train"] > 2 * 11_000 * 4  # ~11k floats
     # FedPer's personal heads live on the drones' own disks, one per drone.
     assert sorted(p.name for p in (tmp_path / "fedper" / "personal").iterdir()) == [

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from flwr.app import Array, ArrayRecord, ConfigRecord, Context, Error, Message, RecordDict
+from flwr.serverapp.strategy import FedAvg
 
 from dronefl.fl.client_app import PERSONAL_KEY, _local_model, _windows, handle_train
 from dronefl.fl.methods import METHODS
@@ -164,3 +165,20 @@ def test_aggregation_does_not_depend_on_the_order_replies_arrive_in():
     forward, _ = _aggregate(RobustFedAvg(num_drones=3), replies, shapes)
     backward, _ = _aggregate(RobustFedAvg(num_drones=3), replies[::-1], shapes)
     assert np.array_equal(forward["w"].numpy(), backward["w"].numpy())
+
+
+def test_our_fedavg_equals_flowers_fedavg_on_unequal_sample_counts():
+    # Prepare: three drones with random weights (two arrays each) and 5, 17 and 130 windows.
+    rng = np.random.default_rng(4)
+    counts = {1: 5, 2: 17, 3: 130}
+    weights = {d: (rng.normal(size=(4, 3)), rng.normal(size=7)) for d in counts}
+    replies = [_reply(d, n, a=weights[d][0], b=weights[d][1]) for d, n in counts.items()]
+    shapes = {"a": (4, 3), "b": (7,)}
+    # Execute: ours (screened, drone order) and Flower's own FedAvg on the same replies.
+    ours, _ = _aggregate(RobustFedAvg(num_drones=3), replies[::-1], shapes)
+    flowers, _ = FedAvg(arrayrecord_key="arrays").aggregate_train(1, replies)
+    # Assert: the same arrays, and both the sample-weighted mean sum_i n_i w_i / sum_i n_i.
+    for key, index in (("a", 0), ("b", 1)):
+        expected = sum(n * weights[d][index] for d, n in counts.items()) / sum(counts.values())
+        np.testing.assert_allclose(ours[key].numpy(), flowers[key].numpy(), rtol=1e-6)
+        np.testing.assert_allclose(ours[key].numpy(), expected, rtol=1e-6)

@@ -14,7 +14,7 @@ from dronefl.models.model import (
     count_parameters,
     predictor_config,
 )
-from dronefl.models.windows import FEATURE_DIM, window_features
+from dronefl.models.windows import FEATURE_DIM, PositionFrame, window_features
 
 
 def test_adain_output_has_the_styles_mean_and_std():
@@ -33,6 +33,46 @@ def test_adain_output_has_the_styles_mean_and_std():
     sigma = torch.cat([3.0 * h + 0.2, 4.0 * h + 2.0], dim=1)
     torch.testing.assert_close(out.mean(dim=1), mu, atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(out.std(dim=1, unbiased=False), sigma.abs(), atol=1e-3, rtol=1e-3)
+
+
+@pytest.mark.parametrize(("axis", "dim"), [("time", 1), ("channel", 2)])
+def test_identity_style_is_the_plain_normalisation(axis, dim):
+    # A = 0, b = (mu, sigma) = (0, 1): o = (z - mean(z)) / std(z), whatever the altitude.
+    adain = AltitudeAdaIN(channels=3, axis=axis, init="identity", eps=0.0)
+    z = torch.tensor([[[1.0, 2.0, 6.0], [3.0, 4.0, 0.0]]])  # (B=1, T=2, C=3)
+    expected = (z - z.mean(dim=dim, keepdim=True)) / z.std(dim=dim, unbiased=False, keepdim=True)
+    for altitude in (20.0, 60.0):
+        torch.testing.assert_close(adain(z, torch.tensor([altitude])), expected)
+
+
+def test_channel_adain_by_hand():
+    # z = (1, 3) over C = 2 channels: mean 2, std 1, so z_hat = (-1, 1). Altitude 100 m ->
+    # h = 2; A = (0, 0 | 1, 2), b = (0.5, -0.5 | 0, 1) -> mu = (0.5, -0.5), sigma = (2, 5).
+    adain = AltitudeAdaIN(channels=2, axis="channel", eps=0.0)
+    with torch.no_grad():
+        adain.style.weight.copy_(torch.tensor([[0.0], [0.0], [1.0], [2.0]]))
+        adain.style.bias.copy_(torch.tensor([0.5, -0.5, 0.0, 1.0]))
+    out = adain(torch.tensor([[[1.0, 3.0]]]), torch.tensor([100.0]))
+    # o = sigma * z_hat + mu = (2 * -1 + 0.5, 5 * 1 - 0.5)
+    torch.testing.assert_close(out, torch.tensor([[[-1.5, 4.5]]]))
+
+
+def test_sigma_follows_a_h_plus_b_and_the_altitude_init_is_proportional_to_h():
+    # sigma = A h + b: with A = 0.5, b = 0.25 the output std is 0.5 * h/50 + 0.25.
+    adain = AltitudeAdaIN(channels=1, axis="time", eps=0.0)
+    with torch.no_grad():
+        adain.style.weight.copy_(torch.tensor([[0.0], [0.5]]))
+        adain.style.bias.copy_(torch.tensor([0.0, 0.25]))
+    z = torch.tensor([[[0.0], [2.0]]]).expand(3, 2, 1)  # z_hat = (-1, 1) in every instance
+    altitude = torch.tensor([25.0, 50.0, 100.0])  # h/50 = 0.5, 1, 2
+    out = adain(z, altitude)
+    torch.testing.assert_close(out[:, 1, 0], torch.tensor([0.5, 0.75, 1.25]))
+    # The "altitude" start: mu = 0, sigma = h / 50 m, so the output doubles with the altitude.
+    physical = AltitudeAdaIN(channels=4, axis="channel", init="altitude")
+    z = torch.randn(2, 3, 4)
+    torch.testing.assert_close(
+        physical(z, torch.full((2,), 60.0)), 2 * physical(z, torch.full((2,), 30.0))
+    )
 
 
 def test_adain_needs_more_than_one_step():
@@ -75,12 +115,15 @@ def test_variants_differ_as_specified():
     assert (dronefl.d_model, dronefl.n_heads, dronefl.d_ff) == (16, 4, 32)
     assert large.d_model == 64
     n = {v: count_parameters(build_model(predictor_config(v))) for v in ("dronefl", "plain")}
-    # AdaIN adds A (16 x 2, times 2 layers) and b (32, times 2 layers) = 128 parameters.
-    assert n["dronefl"] - n["plain"] == 128
+    # AdaIN adds A (16 x 2) and b (32) = 64 parameters per site: 2 encoder layers + the head.
+    assert n["dronefl"] - n["plain"] == 3 * 64
+    encoder_only = build_model(predictor_config("dronefl", adain_sites=("encoder",)))
+    assert count_parameters(encoder_only) - n["plain"] == 2 * 64
 
 
-def test_lf_of_one_works_with_encoder_side_adain():
+def test_lf_of_one_works_with_encoder_and_head_adain():
     model = build_model(PredictorConfig(past_steps=10, future_steps=1)).eval()
+    assert model.head_adain is not None and len(model.adain) == 2
     assert model(torch.randn(2, 10, FEATURE_DIM), torch.tensor([20.0, 40.0])).shape == (2, 1, 2)
 
 
@@ -94,7 +137,12 @@ def test_missed_detections_do_not_change_the_prediction():
     model = build_model(predictor_config("dronefl")).eval()
     h = torch.tensor([30.0])
     outs = [
-        model(torch.from_numpy(window_features(b, detected, odometry, np.zeros(2), True))[None], h)
+        model(
+            torch.from_numpy(window_features(b, detected, odometry, np.zeros(2), PositionFrame()))[
+                None
+            ],
+            h,
+        )
         for b in (boxes, junk)
     ]
     torch.testing.assert_close(outs[0], outs[1])
@@ -116,3 +164,5 @@ def test_bad_shapes_and_configs_are_rejected():
         PredictorConfig(d_model=10, n_heads=4)
     with pytest.raises(ValueError, match="unknown predictor variant"):
         predictor_config("huge")
+    with pytest.raises(ValueError, match="adain_sites"):
+        PredictorConfig(adain_sites=("decoder",))

@@ -6,7 +6,7 @@ import torch
 
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.predictor import TrajectoryPredictor
-from dronefl.models.windows import window_features
+from dronefl.models.windows import PositionFrame, window_features
 
 
 def _step(rng):
@@ -27,7 +27,7 @@ def test_predict_adds_the_drone_position_back():
     assert out.shape == (3, 5, 2)
     assert np.isnan(out[2]).all()  # no detection in the window: no prediction
     origin = odometry[-1, 0:2].astype(np.float64)
-    features = window_features(boxes[:, 0], detected[:, 0], odometry, origin, relative=True)
+    features = window_features(boxes[:, 0], detected[:, 0], odometry, origin, PositionFrame())
     altitude = torch.tensor([odometry[:, 2].astype(np.float64).mean()], dtype=torch.float32)
     with torch.no_grad():
         relative = model(torch.from_numpy(features)[None], altitude)[0].numpy()

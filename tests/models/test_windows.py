@@ -5,6 +5,7 @@ import pytest
 
 from dronefl.models.windows import (
     FEATURE_DIM,
+    PositionFrame,
     WindowSpec,
     build_windows,
     split_windows,
@@ -50,8 +51,8 @@ def test_box_values_at_missed_steps_do_not_reach_the_features():
     boxes_junk = boxes_nan.copy()
     boxes_junk[1] = (9.0, -9.0, 5.0, 7.0)
     origin = np.zeros(2)
-    a = window_features(boxes_nan, detected, odometry, origin, relative=True)
-    b = window_features(boxes_junk, detected, odometry, origin, relative=True)
+    a = window_features(boxes_nan, detected, odometry, origin, PositionFrame())
+    b = window_features(boxes_junk, detected, odometry, origin, PositionFrame())
     np.testing.assert_array_equal(a, b)
     assert np.isfinite(a).all()
 
@@ -89,3 +90,16 @@ def test_labels_of_the_wrong_shape_are_rejected(tiny_log):
     log, labels = tiny_log
     with pytest.raises(ValueError, match="labels must have shape"):
         build_windows(log, labels[:, :1], WindowSpec())
+
+
+def test_absolute_positions_follow_the_scenario_field(tiny_log):
+    # A 200 m x 100 m field: origin at its centre (100, 50) m, 100 m (half the width) per unit.
+    log, labels = tiny_log
+    frame = PositionFrame(relative=False, field_m=(200.0, 100.0))
+    assert frame.field_centre_m == (100.0, 50.0) and frame.scale_m == 100.0
+    spec = WindowSpec(past_steps=3, future_steps=2, relative=False, field_m=(200.0, 100.0))
+    windows = build_windows(log, labels, spec)
+    np.testing.assert_allclose(windows.origin, np.broadcast_to([100.0, 50.0], (len(windows), 2)))
+    # The drone hovers at (10, 20) m: x feature (10 - 100) / 100, y feature (20 - 50) / 100.
+    np.testing.assert_allclose(windows.features[0, 0, 4:6], [-0.9, -0.3], rtol=1e-6)
+    assert PositionFrame().scale_m == 10.0  # relative: 10 m per unit, whatever the field

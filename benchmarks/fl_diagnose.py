@@ -1,0 +1,186 @@
+"""In-process FedAvg diagnostics of the DroneFL predictor (no Ray, no Flower messages).
+
+Run: ``PYTHONPATH=$PWD .venv/bin/python benchmarks/fl_diagnose.py RUN_DIR [options]`` where
+``RUN_DIR`` is a recorded crop-field run (``dronefl simulate`` or the ``data/`` folder of
+``dronefl fl-offline``). It plays FedAvg with the project's own local trainer
+(:func:`dronefl.models.train.train_local`) on each drone's windows, exactly as the Flower
+ClientApp does (model built with the run's seed, global weights loaded, seeded per (round,
+drone), sample-weighted average), one drone after the other on one thread, and prints per
+round:
+
+* the mean over drones of the global model's test MSE (m^2) and per drone;
+* the drift ``||w_i - w_g|| / ||w_g||`` of each drone's weights after local training;
+* with ``--verbose``, each drone's loss on its own training windows after local training and
+  the global model's MSE on each drone's training windows.
+
+``--pooled`` trains the same model on all drones' pooled training windows instead (the
+``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, lr,
+batch size, weighting, rounds and the hold-out: ``--validation`` trains on the first 80 % of each
+drone's training part and evaluates on the rest (never the test windows). Numbers claimed in the
+README are confirmed with ``dronefl fl-offline`` (the real Flower path).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from dataclasses import replace
+
+import numpy as np
+import torch
+
+from dronefl.fl.methods import METHODS
+from dronefl.fl.records import FlSettings
+from dronefl.logs import load_run
+from dronefl.models.model import build_model
+from dronefl.models.train import evaluate, train_local
+from dronefl.models.windows import WindowSet, ground_truth_labels, split_windows
+
+
+def flat(state: dict[str, torch.Tensor]) -> torch.Tensor:
+    return torch.cat([v.reshape(-1).float() for v in state.values()])
+
+
+def splits_of(settings: FlSettings, validation: bool) -> dict[int, tuple[WindowSet, WindowSet]]:
+    """Per drone (train, evaluation) windows: the chronological 80/20 split, or with
+    ``validation`` the first 80 % of the training part and the remaining 20 % of it."""
+    logs, truth = load_run(settings.run_dir)
+    spec = settings.windows
+    out = {}
+    for d, log in sorted(logs.items()):
+        labels = ground_truth_labels(log, truth)
+        if not validation:
+            out[d] = split_windows(log, labels, spec)
+            continue
+        n_train = int(log.t.shape[0] * spec.train_fraction)
+        cut = int(n_train * 0.8)
+        from dronefl.models.windows import build_windows
+
+        out[d] = (
+            build_windows(log, labels, spec, (0, cut)),
+            build_windows(log, labels, spec, (cut, n_train)),
+        )
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("run_dir")
+    p.add_argument("--method", default="dronefl", choices=list(METHODS))
+    p.add_argument("--rounds", type=int, default=50)
+    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--lr-decay", type=float, default=1.0, help="lr x decay^(round - 1)")
+    p.add_argument("--batch", type=int, default=128)
+    p.add_argument("--stride", type=int, default=10)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--weighting", choices=("samples", "uniform"), default="samples")
+    p.add_argument(
+        "--server-momentum",
+        type=float,
+        default=0.0,
+        help="FedAvgM's server momentum (Flower's update rule, server lr 1)",
+    )
+    p.add_argument("--pooled", action="store_true")
+    p.add_argument("--local", action="store_true")
+    p.add_argument("--validation", action="store_true")
+    p.add_argument("--sites", default=None, help="AdaIN sites, e.g. encoder,head")
+    p.add_argument("--head-init", default=None, choices=("identity", "altitude"))
+    p.add_argument("--every", type=int, default=5, help="print every N rounds")
+    p.add_argument("--verbose", action="store_true")
+    args = p.parse_args()
+    torch.set_num_threads(1)
+    settings = FlSettings(
+        run_dir=args.run_dir,
+        out_dir="/tmp/unused",
+        method=args.method,
+        rounds=args.rounds,
+        stride=args.stride,
+        epochs=args.epochs,
+        lr=args.lr,
+        batch_size=args.batch,
+        seed=args.seed,
+    )
+    splits = splits_of(settings, args.validation)
+    overrides = {}
+    if args.sites is not None:
+        overrides["adain_sites"] = tuple(args.sites.split(","))
+    if args.head_init is not None:
+        overrides["head_style_init"] = args.head_init
+    model_config = replace(settings.model, **overrides)
+    drones = list(splits)
+    print(
+        f"{args.method} {model_config.adain_sites if model_config.adain else 'no AdaIN'} "
+        f"head init {model_config.head_style_init} E={args.epochs} lr={args.lr} "
+        f"decay={args.lr_decay} batch={args.batch} weighting={args.weighting} "
+        f"server momentum {args.server_momentum} windows per drone (train/eval): "
+        + ", ".join(f"{d}: {len(tr)}/{len(te)}" for d, (tr, te) in splits.items())
+    )
+    started = time.perf_counter()
+    if args.pooled or args.local:
+        groups = {0: drones} if args.pooled else {d: [d] for d in drones}
+        for g, members in groups.items():
+            model = build_model(model_config, seed=settings.seed)
+            data = WindowSet.concat([splits[d][0] for d in members])
+            for r in range(1, args.rounds + 1):
+                train_local(model, data, settings.train_config(r, g))
+                if r % args.every == 0 or r == args.rounds:
+                    test = {d: evaluate(model, splits[d][1]) for d in members}
+                    print(
+                        f"{'pooled' if args.pooled else f'drone {g} alone'} round {r:3d} "
+                        f"mean {np.mean(list(test.values())):8.3f}  "
+                        + " ".join(f"{v:7.3f}" for v in test.values())
+                    )
+        print(f"wall {time.perf_counter() - started:.1f} s")
+        return
+    global_state = build_model(model_config, seed=settings.seed).state_dict()
+    velocity: dict[str, torch.Tensor] = {}
+    for r in range(1, args.rounds + 1):
+        states, weights, losses, drift = [], [], {}, {}
+        g = flat(global_state)
+        for d in drones:
+            model = build_model(model_config, seed=settings.seed)
+            model.load_state_dict(global_state)
+            # Adam's lr decays as lr * decay^(round - 1).
+            config = replace(settings.train_config(r, d), lr=args.lr * args.lr_decay ** (r - 1))
+            stats = train_local(model, splits[d][0], config)
+            states.append(model.state_dict())
+            weights.append(stats.num_examples if args.weighting == "samples" else 1.0)
+            losses[d] = evaluate(model, splits[d][0])
+            drift[d] = float((flat(states[-1]) - g).norm() / g.norm())
+        total = sum(weights)
+        average = {
+            k: sum(w * s[k] for w, s in zip(weights, states, strict=True)) / total
+            for k in global_state
+        }
+        # Flower's FedAvgM: pseudo-gradient g = w_g - avg, v <- beta v + g, w_g <- w_g - v.
+        pseudo = {k: global_state[k] - average[k] for k in global_state}
+        if args.server_momentum > 0 and r > 1:
+            velocity = {k: args.server_momentum * velocity[k] + pseudo[k] for k in pseudo}
+        else:
+            velocity = pseudo
+        global_state = {k: global_state[k] - velocity[k] for k in global_state}
+        if r % args.every == 0 or r == args.rounds or r == 1:
+            model = build_model(model_config, seed=settings.seed)
+            model.load_state_dict(global_state)
+            test = {d: evaluate(model, splits[d][1]) for d in drones}
+            line = (
+                f"round {r:3d} mean {np.mean(list(test.values())):8.3f} per drone "
+                + " ".join(f"{v:7.3f}" for v in test.values())
+                + "  drift "
+                + " ".join(f"{v:.3f}" for v in drift.values())
+            )
+            if args.verbose:
+                on_train = {d: evaluate(model, splits[d][0]) for d in drones}
+                line += "\n    local model on own train " + " ".join(
+                    f"{v:7.3f}" for v in losses.values()
+                )
+                line += "\n    global model on own train " + " ".join(
+                    f"{v:7.3f}" for v in on_train.values()
+                )
+            print(line, flush=True)
+    print(f"wall {time.perf_counter() - started:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
