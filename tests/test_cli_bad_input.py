@@ -13,7 +13,7 @@ from dronefl.cli import main
 from dronefl.config import load_scenario
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
-from dronefl.fl.records import FlSettings
+from dronefl.fl.records import FlSettings, RoundRecord
 from dronefl.fl.server_app import initial_state
 
 CORPUS = Path(__file__).parent / "data" / "corrupt"
@@ -51,12 +51,14 @@ def _place(source: Path, target: Path) -> None:
 
 
 def _fl_run(tmp_path: Path, recorded: Path) -> Path:
-    out = tmp_path / "fl"
+    """An fl-offline folder whose seed-0 recording is ``recorded``; returns the seed's folder."""
+    out = tmp_path / "fl" / "seed_0"
     shutil.copytree(recorded, out / "data")
     return out
 
 
-FL = ["fl-offline", "--case", "1", "--methods", "fedavg", "--rounds", "2", "--resume"]
+FL = ["fl-offline", "--scenario", "case1", "--seeds", "0", "--methods", "fedavg", "--rounds", "2",
+      "--resume"]  # fmt: skip
 
 
 def _onboard(tmp_path, recorded, case):
@@ -65,16 +67,16 @@ def _onboard(tmp_path, recorded, case):
     if case == "missing":  # no drone log at all
         for log in (out / "data").glob("drone_*.npz"):
             log.unlink()
-        return [*FL, "--out", str(out)], out / "data"
+        return [*FL, "--out", str(out.parent)], out / "data"
     _place(CORPUS / "onboard_log" / f"{case}.npz", path)
-    return [*FL, "--out", str(out)], path
+    return [*FL, "--out", str(out.parent)], path
 
 
 def _truth(tmp_path, recorded, case):
     out = _fl_run(tmp_path, recorded)
     path = out / "data" / "ground_truth.npz"
     _place(CORPUS / "ground_truth" / f"{case}.npz", path)
-    return [*FL, "--out", str(out)], path
+    return [*FL, "--out", str(out.parent)], path
 
 
 def _checkpoint(tmp_path, recorded, case):
@@ -82,7 +84,7 @@ def _checkpoint(tmp_path, recorded, case):
     path = out / "fedavg" / "checkpoint.npz"
     _place(CORPUS / "checkpoint" / f"{case}.npz", path)
     _place(CORPUS / "checkpoint" / "history.json", out / "fedavg" / "history.json")
-    return [*FL, "--out", str(out)], path
+    return [*FL, "--out", str(out.parent)], path
 
 
 def _history(tmp_path, recorded, case):
@@ -91,16 +93,16 @@ def _history(tmp_path, recorded, case):
     save_checkpoint(
         settings.checkpoint_path,
         settings.history_path,
-        Checkpoint("fedavg", 2, initial_state(settings), [{"round": 1}, {"round": 2}]),
+        Checkpoint("fedavg", 2, initial_state(settings), [RoundRecord(1), RoundRecord(2)]),
     )
     _place(CORPUS / "history" / f"{case}.json", settings.history_path)
-    return [*FL, "--out", str(out)], settings.history_path
+    return [*FL, "--out", str(out.parent)], settings.history_path
 
 
 def _results(tmp_path, recorded, case):
     out = _fl_run(tmp_path, recorded)
-    _place(CORPUS / "results" / f"{case}.json", out / "results.json")
-    return [*FL, "--out", str(out)], out / "results.json"
+    _place(CORPUS / "results" / f"{case}.json", out.parent / "results.json")
+    return [*FL, "--out", str(out.parent)], out.parent / "results.json"
 
 
 def _dataset(tmp_path: Path) -> Path:
@@ -190,6 +192,8 @@ BAD_OPTIONS = [
     "fl-offline --faults 1:2",
     "fl-offline --duration nan",
     "fl-offline --stride 0",
+    "fl-offline --seeds a",
+    "fl-offline --config nope",
     "fl-offline --out FILE/x",
     "fl-ablation --rounds 0",
     "fl-altitude --methods foo",
@@ -200,6 +204,7 @@ BAD_OPTIONS = [
     "track --duration nan",
     "track --fl-period -1",
     "track --labels x",
+    "track --fusion x",
     "track --weights-dtype x",
     "track --pretrained FILE",
     "table1 --seeds a",

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from dronefl.config import ScenarioError, load_scenario
-from dronefl.experiments.fl_offline import _earlier_methods
+from dronefl.experiments.fl_offline import OfflineResults
 from dronefl.fl.checkpoint import CheckpointError, load_checkpoint, load_history
 from dronefl.logs import GroundTruth, LogError, OnboardLog, PseudoLabels
 from dronefl.perception.dataset import read_scenes
@@ -29,7 +29,7 @@ LOADERS = {
         ".npz",
     ),
     "history": (lambda p: load_history(p, server_round=2), CheckpointError, ".json"),
-    "results": (_earlier_methods, CheckpointError, ".json"),
+    "results": (OfflineResults.load, CheckpointError, ".json"),
     "scenes": (read_scenes, ValueError, ".jsonl"),
     "onnx": (YoloDetector, ValueError, ".onnx"),
     "scenario": (load_scenario, ScenarioError, ".yaml"),

@@ -317,7 +317,7 @@ class OfflineResults:
     def load(cls, path: Path) -> OfflineResults:
         try:
             return cls.from_json(json.loads(path.read_text()))
-        except (OSError, ValueError, KeyError, TypeError):
+        except (OSError, ValueError, KeyError, TypeError, AttributeError):
             raise CheckpointError(
                 f"{path}: corrupt results file; remove it or drop --resume"
             ) from None

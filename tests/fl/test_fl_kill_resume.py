@@ -20,7 +20,9 @@ import pytest
 from dronefl.io import CRASH_ENV
 
 PR_SET_CHILD_SUBREAPER = 36
-TINY = ["--case", "1", "--duration", "40", "--stride", "5", "--seed", "3", "--epochs", "2"]
+TINY = ["--scenario", "case1", "--duration", "40", "--stride", "5", "--seeds", "3", "--epochs", "2"]
+#: Where the runs of seed 3 live in an fl-offline folder.
+SEED = "seed_3"
 #: Children are forked from a server that has imported the CLI once (a fresh interpreter per
 #: run would spend most of the test importing torch; Adam imports torch._dynamo on first use).
 _SERVER = multiprocessing.get_context("forkserver")
@@ -97,14 +99,15 @@ def outcome(out: Path, method: str) -> tuple[list, dict, dict[str, np.ndarray], 
     """History, results without wall-clock times, final weights, and the bytes of every
     message per round (apart: a message's size varies by a few bytes from run to run with the
     random node ids the engine gives the drones, which Flower writes as varints)."""
-    history = json.loads((out / method / "history.json").read_text())
+    history = json.loads((out / SEED / method / "history.json").read_text())
     results = json.loads((out / "results.json").read_text())
-    results.pop("wall_seconds_this_invocation")
     sizes = [entry.pop("bytes") for entry in history]
     for block in results["methods"].values():
         block.pop("wall_seconds")
-        sizes.append((block.pop("bytes_down_per_round"), block.pop("bytes_up_per_round")))
-    with np.load(out / method / "checkpoint.npz") as npz:
+        for run in block["per_seed"]:
+            run.pop("wall_seconds")
+            sizes.append((run.pop("bytes_down_per_round"), run.pop("bytes_up_per_round")))
+    with np.load(out / SEED / method / "checkpoint.npz") as npz:
         weights = {k: npz[k] for k in npz.files}
     return history, results, weights, sizes
 
@@ -149,10 +152,10 @@ def test_centralized_run_killed_four_times_resumes_bit_identical(tmp_path, start
 
     out = tmp_path / "killed"
     assert fl_offline(started, out, *method, crash_at=CENTRALIZED_KILLS[0]) == -signal.SIGKILL
-    rounds_after_kill = [json.loads((out / "centralized/history.json").read_text())]
+    rounds_after_kill = [json.loads((out / SEED / "centralized/history.json").read_text())]
     for point in CENTRALIZED_KILLS[1:]:
         assert fl_offline(started, out, *method, "--resume", crash_at=point) == -signal.SIGKILL
-        rounds_after_kill.append(json.loads((out / "centralized/history.json").read_text()))
+        rounds_after_kill.append(json.loads((out / SEED / "centralized/history.json").read_text()))
     # What survived each kill: round 1; rounds 1-3 in the history (round 3's checkpoint was
     # never renamed into place); rounds 1-3; all four.
     assert [[h["round"] for h in hist] for hist in rounds_after_kill] == [
@@ -182,6 +185,9 @@ def test_federated_run_with_faults_killed_mid_round_resumes_bit_identical(tmp_pa
 
     out = tmp_path / "killed"
     assert fl_offline(started, out, *method, crash_at="round-end:3") == -signal.SIGKILL
-    assert [h["round"] for h in json.loads((out / "fedavg/history.json").read_text())] == [1, 2]
+    assert [h["round"] for h in json.loads((out / SEED / "fedavg/history.json").read_text())] == [
+        1,
+        2,
+    ]
     assert fl_offline(started, out, *method, "--resume") == 0
     assert_identical(outcome(out, "fedavg"), reference)

@@ -24,6 +24,7 @@ from onnx import TensorProto, helper
 from dronefl.config import load_scenario
 from dronefl.experiments.simulate import scenario_dict
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
+from dronefl.fl.records import RoundRecord
 from dronefl.logs import GroundTruth, OnboardLog, PseudoLabels
 
 HERE = Path(__file__).resolve().parent
@@ -82,7 +83,7 @@ def npz_versions(folder: Path, make, nan: dict, shape: dict, other: Path) -> Non
 
 def checkpoints(folder: Path) -> None:
     state = {"layer.weight": torch.ones(2, 3), "layer.bias": torch.zeros(2)}
-    history = [{"round": 1, "mean_test_mse": 1.0}]
+    history = [RoundRecord(1, {1: 1.0})]
 
     def save(name: str, **tensors: torch.Tensor) -> Path:
         path = folder / f"{name}.npz"
@@ -107,7 +108,7 @@ def texts(folder: Path, suffix: str, files: dict[str, str]) -> None:
 
 
 def histories(folder: Path) -> None:
-    valid = json.dumps([{"round": 1, "mean_test_mse": 1.0}, {"round": 2, "mean_test_mse": 0.5}])
+    valid = json.dumps([RoundRecord(1, {1: 1.0}).to_json(), RoundRecord(2, {1: 0.5}).to_json()])
     texts(folder, ".json", {
         "valid": valid,
         "empty": "",
@@ -120,15 +121,34 @@ def histories(folder: Path) -> None:
 
 
 def results(folder: Path) -> None:
-    valid = json.dumps({"case": 1, "methods": {"fedavg": {"final_test_mse": 1.5}}})
+    seed = {
+        "seed": 0,
+        "final_test_mse": 1.5,
+        "final_test_mse_per_drone": {"1": 1.5},
+        "mean_test_mse": [2.0, 1.5],
+        "bytes_down_per_round": [10, 10],
+        "bytes_up_per_round": [10, 10],
+        "rejected": {},
+        "wall_seconds": 1.0,
+    }
+    method = {"model": "dronefl", "parameters": 10, "training": "federated", "per_seed": [seed]}
+    head = {
+        "scenario": "case1",
+        "config": "ours",
+        "rounds": 2,
+        "duration_s": 60.0,
+        "stride": 10,
+        "proximal_mu": 0.01,
+    }
+    valid = json.dumps({**head, "methods": {"fedavg": method}})
     texts(folder, ".json", {
         "valid": valid,
         "empty": "",
         "truncated": valid[: len(valid) // 2],
         "wrong_format": json.dumps([1, 2, 3]),
-        "wrong_version": json.dumps({"case": 1, "method_results": {}}),
-        "nan": json.dumps({"case": 1, "methods": float("nan")}),
-        "wrong_shape": json.dumps({"case": 1, "methods": {"fedavg": [1.5]}}),
+        "wrong_version": json.dumps({"case": 1, "method_results": {}}),  # the old layout
+        "nan": json.dumps({**head, "rounds": float("nan"), "methods": {"fedavg": method}}),
+        "wrong_shape": json.dumps({**head, "methods": [method]}),
     })  # fmt: skip
 
 
