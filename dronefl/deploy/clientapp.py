@@ -7,8 +7,7 @@ the round's pseudo-labels (``tracks.npz``) before each round.
 
 The Deployment Engine runs every message in a fresh process, so the new global model of a
 round reaches the drone's predictor through the disk: a ``query`` message carrying the
-weights makes this app write them to ``<data-dir>/global.npz``; a ``query`` without weights
-(``action = identify``) only answers which drone this SuperNode serves.
+weights makes this app write them to ``<data-dir>/global.npz``.
 """
 
 from __future__ import annotations
@@ -76,12 +75,11 @@ def train(msg: Message, context: Context) -> Message:
 
 @app.query()
 def query(msg: Message, context: Context) -> Message:
-    """Install the global model sent (if any) on this drone's disk; answer the drone id."""
+    """Install the global model sent on this drone's disk; answer the drone id."""
     settings = drone_settings(context)
     drone_id = int(context.node_config[DRONE_KEY])
-    if ARRAYS_KEY in msg.content.array_records:
-        state = settings.layout.unpack(msg.content[ARRAYS_KEY])
-        server_round = int(msg.content["config"][ROUND_KEY])
-        save_model(Path(settings.run_dir) / GLOBAL_MODEL, state, server_round)
+    state = settings.layout.unpack(msg.content[ARRAYS_KEY])
+    server_round = int(msg.content["config"][ROUND_KEY])
+    save_model(Path(settings.run_dir) / GLOBAL_MODEL, state, server_round)
     reply = RecordDict({METRICS_KEY: MetricRecord({DRONE_KEY: drone_id})})
     return Message(content=reply, reply_to=msg)

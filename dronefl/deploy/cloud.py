@@ -30,17 +30,18 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from flwr.app import ConfigRecord, Context, RecordDict
+from flwr.app import ConfigRecord, Context, Message, RecordDict
 from flwr.common.logger import log
 from flwr.serverapp import Grid, ServerApp
 
 from dronefl.config import Scenario, load_scenario
 from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.clientapp import load_model
-from dronefl.deploy.grid import DroneGrid, identify
+from dronefl.deploy.grid import DroneGrid
 from dronefl.deploy.link import (
     CONTROL,
     FLUSH,
+    NODE,
     PREDICTIONS,
     RELEASE,
     RELOAD,
@@ -155,7 +156,7 @@ class CloudEpisode:
         self.state, _ = load_model(Path(settings.model))
         self.history: list[dict] = []
         self.rounds: list[dict] = []
-        self.nodes: dict[int, int] = {}  # SuperNode id -> drone id
+        self.nodes: dict[int, int] = {}  # drone id -> its SuperNode's id
         m, n = len(s.drones), len(s.targets)
         self.prediction = np.full((self.n_steps, m, n, 2), np.nan)
         self.track_position = np.full((self.n_steps + 1, n, 2), np.nan)
@@ -223,24 +224,29 @@ class CloudEpisode:
         if self.settings.method != "dronefl":
             return
         deadline = time.monotonic() + s.start_timeout
-        while set(self.nodes.values()) != set(drones):
-            if time.monotonic() > deadline:
-                have = sorted(set(self.nodes.values()))
-                raise CloudError(
-                    f"SuperNodes of drones {sorted(set(drones) - set(have))} did not connect "
-                    f"to the SuperLink within {s.start_timeout:.0f} s"
-                )
-            self._identify_new_nodes()
+        while (absent := self._refresh_nodes(drones)) and time.monotonic() < deadline:
             time.sleep(0.5)
+        if absent:
+            raise CloudError(
+                f"SuperNodes of drones {absent} did not connect to the SuperLink within "
+                f"{s.start_timeout:.0f} s"
+            )
 
-    def _identify_new_nodes(self) -> None:
-        unknown = [n for n in self.grid.get_node_ids() if n not in self.nodes]
-        if unknown:
-            log(INFO, "cloud: asking SuperNodes %s which drone they serve", unknown)
-            found = identify(self.grid, unknown, timeout=30.0)
-            self.nodes.update(found)
-            for node, drone in found.items():
-                log(INFO, "cloud: SuperNode %d serves drone %d", node, drone)
+    def _refresh_nodes(self, drones: list[int] | tuple[int, ...]) -> list[int]:
+        """Ask each of ``drones`` for its SuperNode's id (a restarted drone has a new one);
+        returns the drones whose SuperNode is not connected to the SuperLink."""
+        connected = set(self.grid.get_node_ids())
+        absent = []
+        for drone_id in drones:
+            answer = self.link.request(NODE.format(id=drone_id), timeout=5.0)
+            node = int(answer) if answer else None
+            if node is None or node not in connected:
+                absent.append(drone_id)
+                continue
+            if self.nodes.get(drone_id) != node:
+                log(INFO, "cloud: drone %d has SuperNode %d", drone_id, node)
+            self.nodes[drone_id] = node
+        return absent
 
     def _alive_drones(self) -> list[int]:
         alive = self.link.alive()
@@ -327,12 +333,8 @@ class CloudEpisode:
             if answer == b"ok":
                 ready.append(drone_id)
                 self.counter.add(drone_id, "down", "labels", len(payload))
-        self._identify_new_nodes()
-        latest = {}  # drone -> its newest SuperNode (a restarted drone registers anew)
-        for node, drone in sorted(self.nodes.items()):
-            if drone in ready and node in set(self.grid.get_node_ids()):
-                latest[drone] = node
-        nodes = {node: drone for drone, node in latest.items()}
+        absent = self._refresh_nodes(ready)
+        nodes = {self.nodes[d]: d for d in ready if d not in absent}  # node id -> drone
         entry = {"round": server_round, "t": steps * self.scenario.dt, "step": steps}
         trained: dict[str, float] = {}
         if nodes:
@@ -380,8 +382,7 @@ class CloudEpisode:
             }
         )
         messages = [
-            self.grid.create_message(content, "query", node, f"install-{server_round}")
-            for node in nodes
+            Message(content, node, "query", group_id=f"install-{server_round}") for node in nodes
         ]
         for message in messages:
             self.counter.add(
@@ -421,7 +422,7 @@ class CloudEpisode:
                 "late_predictions": {str(d): n for d, n in sorted(self.inbox.late.items())},
                 "communication_kb_per_s": self.counter.kb_per_second(sim_seconds),
                 "telemetry_kb_per_s": self.telemetry_bytes / 1000 / sim_seconds,
-                "supernodes": {str(n): d for n, d in sorted(self.nodes.items())},
+                "supernodes": {str(d): n for d, n in sorted(self.nodes.items())},
                 "settings": asdict(self.settings),
             },
         )

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import shlex
 import threading
 import time
@@ -38,6 +39,7 @@ from dronefl.deploy.link import (
     CONTROL,
     EPISODE,
     FLUSH,
+    NODE,
     PREDICTIONS,
     RELOAD,
     SENSE,
@@ -45,12 +47,15 @@ from dronefl.deploy.link import (
     LinkConfig,
 )
 from dronefl.deploy.messages import LabelsMessage, SenseMessage
-from dronefl.deploy.processes import Children, DeployError, port_open, wait_for
+from dronefl.deploy.processes import Child, Children, DeployError, port_open, wait_for
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.wire import PredictionMessage
+
+#: How the SuperNode logs the node id the SuperLink assigned it.
+_NODE_ID = re.compile(r"SuperNode ID: (\d+)")
 
 
 @dataclass(frozen=True)
@@ -175,7 +180,7 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
         supernode = children.start(f"supernode-{settings.drone_id}", command, env)
         info = _episode(link, settings.start_timeout)
         drone = DroneProcess(settings, info, predictor)
-        _serve(link, drone)
+        _serve(link, drone, supernode)
         link.watch_alive()
         if link.wait_alive({"world"}, settings.start_timeout):
             raise DeployError(f"the world did not appear within {settings.start_timeout:.0f} s")
@@ -195,7 +200,14 @@ def _episode(link: Link, timeout: float) -> dict:
     raise DeployError(f"the world did not answer within {timeout:.0f} s")
 
 
-def _serve(link: Link, drone: DroneProcess) -> None:
+def supernode_id(supernode: Child) -> bytes:
+    """The node id the SuperLink gave this drone's SuperNode (from its log; empty until it
+    has connected)."""
+    found = _NODE_ID.findall(supernode.output())
+    return found[-1].encode() if found else b""
+
+
+def _serve(link: Link, drone: DroneProcess, supernode: Child) -> None:
     d = drone.settings.drone_id
 
     def forward(_: str, payload: bytes) -> None:  # cloud's control -> autopilot
@@ -205,9 +217,10 @@ def _serve(link: Link, drone: DroneProcess) -> None:
     link.subscribe(CONTROL.format(id=d), forward)
     link.serve(FLUSH.format(id=d), drone.flush)
     link.serve(RELOAD.format(id=d), drone.reload)
+    link.serve(NODE.format(id=d), lambda _: supernode_id(supernode))
 
 
-def _loop(link: Link, drone: DroneProcess, supernode) -> None:
+def _loop(link: Link, drone: DroneProcess, supernode: Child) -> None:
     key = PREDICTIONS.format(id=drone.settings.drone_id)
     try:
         while True:

@@ -4,8 +4,7 @@
 node id -> drone id), so that Flower's strategies sample exactly those, and replaces
 ``send_and_receive``: it pulls replies every ``poll`` s (Flower's own loop sleeps 3 s between
 pulls), gives up after ``timeout`` s, and stops waiting for a drone as soon as ``alive``
-says it is gone (its reply will never come). :func:`identify` asks SuperNodes which drone
-they serve.
+says it is gone (its reply will never come).
 """
 
 from __future__ import annotations
@@ -13,14 +12,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable
 
-from flwr.app import ConfigRecord, Message, RecordDict
+from flwr.app import Message
 from flwr.serverapp import Grid
-
-from dronefl.fl.records import DRONE_KEY, METRICS_KEY
-
-#: The query a SuperNode's ClientApp answers with its drone id only.
-IDENTIFY = "identify"
-ACTION_KEY = "action"
 
 
 class DroneGrid:
@@ -70,18 +63,3 @@ class DroneGrid:
                 break
             time.sleep(self.poll)
         return replies
-
-
-def identify(grid: Grid, node_ids: Iterable[int], timeout: float) -> dict[int, int]:
-    """Ask each SuperNode in ``node_ids`` for its drone id; returns node id -> drone id of
-    those that answered within ``timeout`` s."""
-    node_ids = list(node_ids)
-    content = RecordDict({"config": ConfigRecord({ACTION_KEY: IDENTIFY})})
-    messages = [grid.create_message(content, "query", node, IDENTIFY) for node in node_ids]
-    found = {}
-    poller = DroneGrid(grid, {}, lambda _: True, timeout)
-    for reply in poller.send_and_receive(messages):
-        if reply.has_error() or METRICS_KEY not in reply.content.metric_records:
-            continue
-        found[reply.metadata.src_node_id] = int(reply.content[METRICS_KEY][DRONE_KEY])
-    return found

@@ -32,6 +32,7 @@ TELEMETRY = "dronefl/world/telemetry"  # world -> cloud: autopilot states of ste
 EPISODE = "dronefl/world/episode"  # queryable: what the world simulates (JSON)
 PREDICTIONS = "dronefl/drone/{id}/predictions"  # drone -> cloud (dronefl.wire)
 CONTROL = "dronefl/drone/{id}/control"  # cloud -> drone (dronefl.wire)
+NODE = "dronefl/drone/{id}/node"  # queryable: the id of the drone's SuperNode
 FLUSH = "dronefl/drone/{id}/flush"  # queryable: write the onboard record and labels
 RELOAD = "dronefl/drone/{id}/reload"  # queryable: load the new global model from disk
 RELEASE = "dronefl/cloud/release"  # cloud -> world: step k is planned, move on

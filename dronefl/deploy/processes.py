@@ -85,19 +85,26 @@ def stop_processes(processes: Sequence[psutil.Process], grace: float) -> None:
 
 @dataclass
 class Child:
-    """One started child: its ``name``, process and log file."""
+    """One started child: its ``name``, process and log file (its output starts at byte
+    ``offset``: a restarted child appends to the log of its predecessor)."""
 
     name: str
     process: subprocess.Popen
     log: Path
+    offset: int = 0
 
-    def last_line(self) -> str:
-        """The last non-empty line of its log (what a failed child said last)."""
+    def output(self) -> str:
+        """What this child has written to its log so far."""
         try:
-            lines = [ln.strip() for ln in self.log.read_text(errors="replace").splitlines()]
+            with self.log.open("rb") as handle:
+                handle.seek(self.offset)
+                return handle.read().decode(errors="replace")
         except OSError:
             return ""
-        lines = [ln for ln in lines if ln]
+
+    def last_line(self) -> str:
+        """The last non-empty line of its output (what a failed child said last)."""
+        lines = [ln.strip() for ln in self.output().splitlines() if ln.strip()]
         return lines[-1] if lines else ""
 
 
@@ -131,6 +138,7 @@ class Children:
     def start(self, name: str, command: Sequence[str], env: dict[str, str] | None = None) -> Child:
         """Start ``command`` as ``name``, output to ``<logs>/<name>.log``."""
         log = self.logs / f"{name}.log"
+        offset = log.stat().st_size if log.is_file() else 0
         handle = log.open("ab")
         self._files.append(handle)
         environment = {**os.environ, **(env or {}), OWNER_ENV: self.owner}
@@ -142,7 +150,7 @@ class Children:
             env=environment,
             start_new_session=self.top_level,
         )
-        child = Child(name, process, log)
+        child = Child(name, process, log, offset)
         self.started.append(child)
         return child
 
