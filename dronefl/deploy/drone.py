@@ -173,12 +173,8 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
             settings.start_timeout,
             f"the SuperLink at {settings.superlink} (unreachable)",
         )
-        certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
-        command = supernode_command(settings, certs)
-        print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
-        env = flower_env(Path(settings.data_dir) / "flwr")
-        supernode = children.start(f"supernode-{settings.drone_id}", command, env)
-        info = _episode(link, settings.start_timeout)
+        supernode = _start_supernode(settings, children)
+        info = _episode(link, settings)
         drone = DroneProcess(settings, info, predictor)
         _serve(link, drone, supernode)
         link.watch_alive()
@@ -189,15 +185,56 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
         _loop(link, drone, supernode)
 
 
-def _episode(link: Link, timeout: float) -> dict:
+def _start_supernode(settings: DroneSettings, children: Children) -> Child:
+    """Start the SuperNode and wait until the SuperLink has admitted it (it logs its node
+    id). One that exits first (say, it connected before the cloud registered its key) is
+    started again until ``start_timeout``; then the SuperLink's refusal is the error."""
+    certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
+    command = supernode_command(settings, certs)
+    env = flower_env(Path(settings.data_dir) / "flwr")
+    print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
+    deadline = time.monotonic() + settings.start_timeout
+    name = f"supernode-{settings.drone_id}"
+    while True:
+        supernode = children.start(name, command, env)
+        while supernode.process.poll() is None and not supernode_id(supernode):
+            if time.monotonic() > deadline:
+                raise DeployError(
+                    f"the SuperNode did not join the SuperLink at {settings.superlink} within "
+                    f"{settings.start_timeout:.0f} s"
+                )
+            time.sleep(0.2)
+        if supernode.process.poll() is None:
+            return supernode
+        reason = _refusal(supernode.output())
+        if time.monotonic() > deadline:
+            raise DeployError(
+                f"the SuperLink at {settings.superlink} refused the SuperNode: {reason}"
+            )
+        print(f"drone {settings.drone_id}: SuperNode not admitted ({reason}); retrying", flush=True)
+        time.sleep(1.0)
+
+
+def _refusal(output: str) -> str:
+    """The line of a SuperNode's output that says why it gave up."""
+    lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
+    reasons = [ln for ln in lines if re.search(r"failed|refused|denied|unauthori", ln, re.I)]
+    return (reasons or lines or ["(no output)"])[-1]
+
+
+def _episode(link: Link, settings: DroneSettings) -> dict:
     """What the world simulates (asked until it answers)."""
+    timeout = settings.start_timeout
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         answer = link.request(EPISODE, timeout=1.0)
         if answer:
             return json.loads(answer)
         time.sleep(0.2)
-    raise DeployError(f"the world did not answer within {timeout:.0f} s")
+    hint = " (are both certificates signed by the same CA?)" if settings.tls_dir else ""
+    raise DeployError(
+        f"the world at {settings.connect[0]} did not answer within {timeout:.0f} s{hint}"
+    )
 
 
 def supernode_id(supernode: Child) -> bytes:
