@@ -151,7 +151,12 @@ def load_predictor(path: Path, past_steps: int) -> TrajectoryPredictor:
     """The DroneFL predictor with the weights in ``path``, on ONNX Runtime."""
     state, _ = load_model(path)
     model = build_model(predictor_config("dronefl", past_steps, 1))
-    model.load_state_dict(state)
+    try:
+        model.load_state_dict(state)
+    except RuntimeError:
+        raise DeployError(
+            f"--model: {path} does not hold the DroneFL predictor's weights"
+        ) from None
     return TrajectoryPredictor(model, runtime="onnx")
 
 
@@ -195,10 +200,15 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
     print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
     deadline = time.monotonic() + settings.start_timeout
     name = f"supernode-{settings.drone_id}"
+    refused = None  # why the SuperLink turned the last attempt away
     while True:
         supernode = children.start(name, command, env)
         while supernode.process.poll() is None and not supernode_id(supernode):
             if time.monotonic() > deadline:
+                if refused is not None:
+                    raise DeployError(
+                        f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
+                    )
                 raise DeployError(
                     f"the SuperNode did not join the SuperLink at {settings.superlink} within "
                     f"{settings.start_timeout:.0f} s"
@@ -206,12 +216,14 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
             time.sleep(0.2)
         if supernode.process.poll() is None:
             return supernode
-        reason = _refusal(supernode.output())
+        refused = _refusal(supernode.output())
         if time.monotonic() > deadline:
             raise DeployError(
-                f"the SuperLink at {settings.superlink} refused the SuperNode: {reason}"
+                f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
             )
-        print(f"drone {settings.drone_id}: SuperNode not admitted ({reason}); retrying", flush=True)
+        print(
+            f"drone {settings.drone_id}: SuperNode not admitted ({refused}); retrying", flush=True
+        )
         time.sleep(1.0)
 
 

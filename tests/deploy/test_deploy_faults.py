@@ -1,0 +1,117 @@
+"""Faults: a drone killed mid-episode never stops it, and a restarted drone rejoins; a
+SuperNode whose key is not registered is refused by the SuperLink."""
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import time
+
+import psutil
+import pytest
+from cryptography.hazmat.primitives import serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from deploy_helpers import MARK, cli, free_port_block, survivors
+
+from dronefl.deploy.certs import make_certificates
+from dronefl.deploy.clientapp import save_model
+from dronefl.models.model import build_model, predictor_config
+
+
+def _drone_process(launcher: subprocess.Popen, drone_id: int) -> psutil.Process | None:
+    for child in psutil.Process(launcher.pid).children():
+        line = child.cmdline()
+        if "drone" in line and line[line.index("--id") + 1] == str(drone_id):
+            return child
+    return None
+
+
+def _world_step(log) -> int:
+    text = log.read_text() if log.is_file() else ""
+    steps = [int(part.split("/")[0]) for part in text.split("step ")[1:]]
+    return max(steps, default=0)
+
+
+@pytest.mark.timeout(600)
+def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, quick_pretrained):
+    out = tmp_path / "deploy"
+    command = cli(
+        "deploy", "up", "--scenario", "case1", "--duration", "40", "--fl-period", "10",
+        "--epochs", "1", "--base-port", str(free_port_block()), "--out", str(out),
+        "--pretrained", str(quick_pretrained), "--restart-drones",
+    )  # fmt: skip
+    launcher = subprocess.Popen(
+        command, env=run_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        deadline = time.monotonic() + 300
+        while _world_step(out / "logs" / "world.log") < 25:  # 5 s into the episode
+            assert launcher.poll() is None and time.monotonic() < deadline
+            time.sleep(0.05)
+        victim = _drone_process(launcher, 2)
+        os.killpg(victim.pid, signal.SIGKILL)  # the drone process and its SuperNode
+        stdout, stderr = launcher.communicate(timeout=500)
+    finally:
+        if launcher.poll() is None:
+            launcher.send_signal(signal.SIGINT)
+            launcher.wait(60)
+    assert launcher.returncode == 0, stderr[-3000:]
+    assert survivors(run_env[MARK]) == []
+    metrics = json.loads((out / "metrics.json").read_text())
+    rounds = {r["round"]: r for r in metrics["fl_rounds"]}
+    assert sorted(rounds) == [1, 2, 3]  # at t = 10, 20, 30 s: the episode went on
+    assert metrics["silent_steps"]["1"] == 0
+    assert metrics["silent_steps"]["2"] > 0
+    assert metrics["missed_rounds"]["2"][0] == 1 and metrics["missed_rounds"]["1"] == []
+    assert rounds[1]["participants"] == [1]
+    # Its targets stayed tracked by the other drone's fusion: every step has a track.
+    assert metrics["tracking_error"] < 25.0
+    # Restarted, it predicts again and takes part in a later round.
+    assert metrics["silent_steps"]["2"] < 200 - 25
+    assert 2 in rounds[3]["participants"]
+    assert "drone 2 restarted" in stdout
+
+
+@pytest.mark.timeout(300)
+def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
+    certs = make_certificates(tmp_path / "certs", [1, 2])
+    # Drone 2 of the intruder's copy has a key pair the cloud never registered.
+    intruder = tmp_path / "intruder"
+    shutil.copytree(certs.folder, intruder)
+    key = ec.generate_private_key(ec.SECP384R1())
+    (intruder / "supernode-2").write_bytes(
+        key.private_bytes(
+            serialization.Encoding.PEM,
+            serialization.PrivateFormat.OpenSSH,
+            serialization.NoEncryption(),
+        )
+    )
+    model = tmp_path / "model.npz"
+    save_model(model, build_model(predictor_config("dronefl", 10, 1)).state_dict(), 0)
+    base = free_port_block()
+    cloud = subprocess.Popen(
+        cli("cloud", "--model", str(model), "--tls-dir", str(certs.folder),
+            "--listen", f"127.0.0.1:{base + 1}", "--connect", f"127.0.0.1:{base}",
+            "--superlink-port", str(base + 2), "--out", str(tmp_path / "cloud")),
+        env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+        drone = subprocess.run(
+            cli("drone", "--id", "2", "--model", str(model), "--tls-dir", str(intruder),
+                "--superlink", f"127.0.0.1:{base + 2}", "--runtime-port", str(base + 12),
+                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "40",
+                "--data-dir", str(tmp_path / "disk")),
+            env=run_env, capture_output=True, text=True, timeout=200,
+        )  # fmt: skip
+    finally:
+        os.killpg(cloud.pid, signal.SIGTERM)
+        cloud.wait(60)
+    lines = [ln for ln in drone.stderr.splitlines() if ln.strip()]
+    assert drone.returncode != 0
+    assert len(lines) == 1
+    assert lines[0].startswith(
+        f"error: the SuperLink at 127.0.0.1:{base + 2} refused the SuperNode"
+    )
+    assert "Failed to activate SuperNode" in lines[0]
+    assert survivors(run_env[MARK]) == []
