@@ -8,6 +8,7 @@ import signal
 import subprocess
 import time
 
+import numpy as np
 import psutil
 import pytest
 from cryptography.hazmat.primitives import serialization
@@ -41,22 +42,24 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
         "--epochs", "1", "--base-port", str(free_port_block()), "--out", str(out),
         "--pretrained", str(quick_pretrained), "--restart-drones",
     )  # fmt: skip
-    launcher = subprocess.Popen(
-        command, env=run_env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
-    )
+    said = tmp_path / "launcher.out"
+    with said.open("w") as output:
+        launcher = subprocess.Popen(command, env=run_env, stdout=output, stderr=subprocess.STDOUT)
     try:
         deadline = time.monotonic() + 300
-        while _world_step(out / "logs" / "world.log") < 25:  # 5 s into the episode
-            assert launcher.poll() is None and time.monotonic() < deadline
+        # Once every process is up and the episode is 5 s in:
+        while "all up" not in said.read_text() or _world_step(out / "logs" / "world.log") < 25:
+            assert launcher.poll() is None and time.monotonic() < deadline, said.read_text()
             time.sleep(0.05)
         victim = _drone_process(launcher, 2)
         os.killpg(victim.pid, signal.SIGKILL)  # the drone process and its SuperNode
-        stdout, stderr = launcher.communicate(timeout=500)
+        launcher.wait(timeout=500)
     finally:
         if launcher.poll() is None:
             launcher.send_signal(signal.SIGINT)
             launcher.wait(60)
-    assert launcher.returncode == 0, stderr[-3000:]
+    stdout = said.read_text()
+    assert launcher.returncode == 0, stdout[-3000:]
     assert survivors(run_env[MARK]) == []
     metrics = json.loads((out / "metrics.json").read_text())
     rounds = {r["round"]: r for r in metrics["fl_rounds"]}
@@ -65,8 +68,10 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
     assert metrics["silent_steps"]["2"] > 0
     assert metrics["missed_rounds"]["2"][0] == 1 and metrics["missed_rounds"]["1"] == []
     assert rounds[1]["participants"] == [1]
-    # Its targets stayed tracked by the other drone's fusion: every step has a track.
-    assert metrics["tracking_error"] < 25.0
+    # Case 1 gives target 2 to drone 2 alone: while it was gone the cloud kept predicting
+    # target 2's track (no drop), and the tracking went on for both targets.
+    with np.load(out / "episode.npz") as episode:
+        assert np.isfinite(episode["track_position"][1:]).all()
     # Restarted, it predicts again and takes part in a later round.
     assert metrics["silent_steps"]["2"] < 200 - 25
     assert 2 in rounds[3]["participants"]
