@@ -57,15 +57,17 @@ def run_cloud(cloud: CloudSettings, fl: FlSettings, link: SuperLinkSettings, log
     env = flower_env(flwr_home)
     result = out / "cloud.json"
     result.unlink(missing_ok=True)
+    # This host's own clients reach a SuperLink that listens on every interface via loopback.
+    local = "127.0.0.1" if link.host in ("0.0.0.0", "") else link.host
     with Children(logs) as children:
         children.start("superlink", superlink_command(link.host, link.port, certs), env)
         wait_for(
-            lambda: port_open(link.host, link.port),
+            lambda: port_open(local, link.port),
             link.start_timeout,
             f"the SuperLink on {link.host}:{link.port}",
             children,
         )
-        write_connection(flwr_home, f"{link.host}:{link.port}", certs.ca if certs else None)
+        write_connection(flwr_home, f"{local}:{link.port}", certs.ca if certs else None)
         if certs is not None:
             for drone_id in scenario.drone_ids:
                 _register(certs.supernode_public_key(drone_id), env, link.start_timeout)
