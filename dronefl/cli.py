@@ -700,6 +700,33 @@ def deploy_up(
     typer.echo(f"wrote {out}/metrics.json and {out}/logs/ ({rounds} FL rounds)")
 
 
+@deploy_app.command("report")
+def deploy_report(
+    world_dir: Annotated[Path, typer.Option("--world", help="Folder with the world's world.npz.")],
+    cloud_dir: Annotated[Path, typer.Option("--cloud", help="Folder with cloud.npz/json.")],
+    scenario: ScenarioOption = "case1",
+    out: OutOption = Path("runs/deploy"),
+) -> None:
+    """Join the world's and the cloud's logs of a multi-host episode into metrics.json.
+
+    Example: dronefl deploy report --world runs/world --cloud runs/cloud --out runs/episode
+    """
+    from dronefl.deploy.results import deployment_metrics
+    from dronefl.io import atomic_write_json
+
+    with _deploy_errors():
+        spec = load_scenario(scenario)
+        for path in (world_dir / "world.npz", cloud_dir / "cloud.npz", cloud_dir / "cloud.json"):
+            if not path.is_file():
+                raise FileNotFoundError(f"{path} does not exist")
+        out.mkdir(parents=True, exist_ok=True)
+        metrics = deployment_metrics(
+            spec, world_dir / "world.npz", cloud_dir / "cloud.npz", cloud_dir / "cloud.json", out
+        )
+        atomic_write_json(out / "metrics.json", metrics)
+    typer.echo(f"wrote {out}/metrics.json and {out}/episode.npz")
+
+
 @deploy_app.command("certs")
 def deploy_certs(
     folder: Annotated[Path, typer.Argument(help="Folder to write.")],
