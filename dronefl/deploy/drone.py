@@ -8,7 +8,9 @@ so that the cloud need not wait for it); the cloud's control
 (:class:`~dronefl.wire.ControlMessage`) it hands on to its autopilot (the world).
 
 Beside it runs its Flower SuperNode (``flower-supernode``, a child process), whose node
-config names the drone and its data folder. Before an FL round the cloud asks the drone
+config names the drone and its data folder; the drone tells the cloud (Zenoh query ``node``)
+which node id the SuperLink gave it, so that a round is sent to the SuperNodes of the live
+drones only. Before an FL round the cloud asks the drone
 (Zenoh query ``flush``) to write its onboard record and the round's pseudo-labels there; after
 the round the ClientApp has written the new global model there, and the cloud asks the drone
 (``reload``) to load it into its predictor.
