@@ -25,12 +25,12 @@ test: install lint
 	$(BIN)/python -m pytest
 
 lint: install
-	$(BIN)/ruff check dronefl tests benchmarks
-	$(BIN)/ruff format --check dronefl tests benchmarks
+	$(BIN)/ruff check dronefl tests benchmarks examples
+	$(BIN)/ruff format --check dronefl tests benchmarks examples
 
 format: install
-	$(BIN)/ruff format dronefl tests benchmarks
-	$(BIN)/ruff check --fix dronefl tests benchmarks
+	$(BIN)/ruff format dronefl tests benchmarks examples
+	$(BIN)/ruff check --fix dronefl tests benchmarks examples
 
 bench: install
 	$(BIN)/dronefl bench --out runs/bench

@@ -12,7 +12,13 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 
 from dronefl.bench.command import bench as bench_command
-from dronefl.config import ENVIRONMENTS, ScenarioError, builtin_scenarios, load_scenario
+from dronefl.config import (
+    ENVIRONMENTS,
+    Scenario,
+    ScenarioError,
+    builtin_scenarios,
+    load_scenario,
+)
 from dronefl.logs import LogError
 from dronefl.perception import DETECTORS
 
@@ -108,6 +114,7 @@ def scenarios(
 @app.command()
 def demo(
     out: OutOption = Path("runs/demo"),
+    scenario: ScenarioOption = "case2",
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 300.0,
 ) -> None:
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
@@ -115,13 +122,14 @@ def demo(
 
     Example: dronefl demo --out runs/demo
     """
-    from dronefl.experiments.track import TrackConfig, run_episode
+    from dronefl.experiments.track import run_episode
     from dronefl.report.tables import comparison
 
+    spec = load_scenario(scenario)
     results = []
     for method in ("fixed", "dronefl"):
-        config = TrackConfig(
-            case=2,
+        config = _track_config(
+            scenario=spec,
             method=method,
             seed=0,
             duration=duration,
@@ -360,8 +368,14 @@ def detector_figures(
         typer.echo(f"wrote {path}")
 
 
-CaseOption = Annotated[int, typer.Option("--case", help="Paper case: 1, 2 or 3.")]
 TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dronefl")]
+PretrainedOption = Annotated[Path, typer.Option(help="Cache of pretrained models.")]
+PretrainRoundsOption = Annotated[
+    int, typer.Option("--pretrain-rounds", help="FL rounds of the crop-field pretraining.")
+]
+PretrainSecondsOption = Annotated[
+    float, typer.Option("--pretrain-seconds", help="Seconds of crop field recorded to pretrain.")
+]
 
 
 def _track_config(**kwargs: object) -> TrackConfig:
@@ -375,7 +389,7 @@ def _track_config(**kwargs: object) -> TrackConfig:
 
 @app.command()
 def track(
-    case: CaseOption = 2,
+    scenario: ScenarioOption = "case2",
     method: TrackMethod = "dronefl",
     seed: SeedOption = 0,
     duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 600.0,
@@ -383,16 +397,17 @@ def track(
     detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: Annotated[str, typer.Option(help="tracks (pseudo-labels) | ground_truth")] = "tracks",
+    past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     weights_dtype: WeightsDtypeOption = "float32",
-    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
-        "runs/pretrained"
-    ),
+    pretrained: PretrainedOption = Path("runs/pretrained"),
+    pretrain_rounds: PretrainRoundsOption = 20,
+    pretrain_seconds: PretrainSecondsOption = 600.0,
     out: OutOption = Path("runs/track"),
 ) -> None:
     """Closed-loop tracking: detect, predict, fuse, plan every 0.2 s; an FL round every 100 s.
 
     Writes metrics.json, episode.npz, trajectories.png, timeseries.png and episode.gif.
-    Example: dronefl track --case 2 --method dronefl --seed 0 --duration 600 --out runs/c2
+    Example: dronefl track --scenario case2 --method dronefl --seed 0 --duration 600 --out runs/c2
     """
     from dronefl.experiments.track import run_episode
     from dronefl.report.tables import format_metrics
@@ -400,7 +415,7 @@ def track(
     check_choice(env, ENVIRONMENTS, "--env")
     check_choice(detector, DETECTORS, "--detector")
     config = _track_config(
-        case=case,
+        scenario=load_scenario(scenario),
         method=method,
         seed=seed,
         duration=duration,
@@ -408,8 +423,11 @@ def track(
         detector=detector,
         fl_period=fl_period,
         labels=labels,
+        past_steps=past_steps,
         weights_dtype=weights_dtype,
         pretrained=pretrained,
+        pretrain_rounds=pretrain_rounds,
+        pretrain_seconds=pretrain_seconds,
         out=out,
     )
     metrics = run_episode(config)
@@ -420,54 +438,86 @@ def track(
 def _int_list(text: str, option: str) -> tuple[int, ...]:
     """``"0 1 2"`` or ``"0,1,2"`` -> ``(0, 1, 2)``."""
     try:
-        return tuple(int(v) for v in text.replace(",", " ").split())
+        values = tuple(int(v) for v in text.replace(",", " ").split())
     except ValueError:
         raise fail(f"{option}: expected integers, got {text!r}") from None
+    if not values:
+        raise fail(f"{option}: give at least one value")
+    return values
+
+
+def _scenario_list(text: str, option: str) -> tuple[Scenario, ...]:
+    """``"case1 case2 my.yaml"`` -> the validated scenarios."""
+    names = text.replace(",", " ").split()
+    if not names:
+        raise fail(f"{option}: give at least one scenario")
+    return tuple(load_scenario(n) for n in names)
 
 
 @app.command()
 def table1(
     seeds: Annotated[str, typer.Option("--seeds", help="Seeds, e.g. '0 1 2' or 0,1,2.")] = "0 1 2",
-    cases: Annotated[str, typer.Option("--cases", help="Cases, e.g. '1 2 3'.")] = "1 2 3",
-    duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
-    weights_dtype: WeightsDtypeOption = "float32",
-    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
-        "runs/pretrained"
+    scenarios: Annotated[
+        str, typer.Option("--scenarios", help="Scenario names or YAML paths, e.g. 'case1 case2'.")
+    ] = "case1 case2 case3",
+    methods: Annotated[str, typer.Option("--methods", help="Closed-loop methods.")] = (
+        "centralized fixed dronefl"
     ),
+    duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
+    fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
+    weights_dtype: WeightsDtypeOption = "float32",
+    pretrained: PretrainedOption = Path("runs/pretrained"),
+    pretrain_rounds: PretrainRoundsOption = 20,
+    pretrain_seconds: PretrainSecondsOption = 600.0,
     out: OutOption = Path("runs/table1"),
 ) -> None:
-    """Table I: every case x {centralized, fixed, dronefl} x seed; markdown, CSV and a plot.
+    """Table I: every scenario x method x seed; markdown, CSV and a plot.
 
     Finished episodes are reused, so an interrupted run resumes.
-    Example: dronefl table1 --seeds "0 1 2" --out runs/table1
+    Example: dronefl table1 --seeds "0 1 2" --scenarios "case1 case2 case3" --out runs/table1
     """
     from dronefl.experiments.table1 import run_table1
+    from dronefl.experiments.track import TRACK_METHODS
 
+    specs = _scenario_list(scenarios, "--scenarios")
+    chosen = tuple(methods.replace(",", " ").split())
+    for method in chosen:
+        check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
-        case=1, duration=duration, weights_dtype=weights_dtype, pretrained=pretrained, out=out
-    )
-    rows = run_table1(base, cases=_int_list(cases, "--cases"), seeds=_int_list(seeds, "--seeds"))
+        scenario=specs[0], duration=duration, fl_period=fl_period, weights_dtype=weights_dtype,
+        pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
+        out=out,
+    )  # fmt: skip
+    episodes = run_table1(base, specs, chosen, _int_list(seeds, "--seeds"))
     typer.echo((out / "table1.md").read_text())
-    typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(rows)} episodes)")
+    typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(episodes)} episodes)")
 
 
 @app.command()
 def pretrain(
-    case: CaseOption = 2,
+    scenario: ScenarioOption = "case2",
     rounds: Annotated[int, typer.Option(help="FL rounds / centralized epochs x10.")] = 20,
+    past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
+    duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
     out: OutOption = Path("runs/pretrained"),
 ) -> None:
     """Pretrain the closed loop's models in the crop field (DroneFL by FL, the large
-    centralized model on pooled data), L_p = 10 -> L_f = 1. `track` does this on demand.
+    centralized model on pooled data), L_p -> L_f = 1. `track` does this on demand.
 
-    Example: dronefl pretrain --case 2 --out runs/pretrained
+    Example: dronefl pretrain --scenario case2 --out runs/pretrained
     """
-    from dronefl.experiments.pretrain import KINDS
+    from dronefl.experiments.pretrain import KINDS, PretrainSpec
     from dronefl.experiments.pretrain import pretrain as run
 
+    spec = load_scenario(scenario)
+    if rounds < 1 or past_steps < 1:
+        raise fail("--rounds and --past-steps: must be >= 1")
+    if not duration > 0:
+        raise fail(f"--duration: must be positive, got {duration}")
     for kind in KINDS:
-        run(case, kind, out, rounds=rounds)
-    typer.echo(f"wrote {out}/case{case}/(dronefl|centralized)/checkpoint.npz")
+        pretraining = PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration)
+        run(pretraining, out)
+        typer.echo(f"wrote {pretraining.settings(out).checkpoint_path}")
 
 
 # -- deployment: the same loop as separate processes (dronefl.deploy) ------------------------

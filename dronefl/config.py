@@ -12,6 +12,8 @@ The field is worked in parallel east-west *lanes* ``lane_spacing`` m apart (crop
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import math
 from importlib import resources
@@ -30,6 +32,11 @@ PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegativeFloat = Annotated[float, Field(ge=0)]
 
 _STRICT = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+#: Largest field side, m: positions travel as int16 centimetres (:mod:`dronefl.wire`).
+MAX_FIELD_SIZE_M = 327.67
+#: Largest target or drone id: ids travel as one unsigned byte (:mod:`dronefl.wire`).
+MAX_ID = 255
 
 
 class ScenarioError(ValueError):
@@ -65,6 +72,12 @@ class CameraSpec:
     height_px: Annotated[int, Field(gt=0)] = 720
     hfov_deg: Annotated[float, Field(gt=0, lt=180)] = 80.0
     detector_px: Annotated[int, Field(gt=0)] = 640
+
+    def footprint_half_extent(self, height_above: float) -> tuple[float, float]:
+        """Half-width and half-height (m) of the ground footprint seen from ``height_above`` m:
+        ``h tan(hfov / 2)`` and that times ``height_px / width_px``."""
+        half_width = height_above * math.tan(math.radians(self.hfov_deg) / 2)
+        return half_width, half_width * self.height_px / self.width_px
 
 
 @dataclass(config=_STRICT)
@@ -115,7 +128,8 @@ class DroneSpec:
     """One drone: flies at fixed ``altitude`` m and watches the target ids in ``targets``.
 
     Horizontal speed is bounded by ``max_speed`` m/s and acceleration by ``max_accel`` m/s^2.
-    ``start`` ``[x, y]`` m defaults to above the centroid of its targets' start positions.
+    ``start`` ``[x, y]`` m defaults to above the centre of the box around its targets' start
+    positions.
     """
 
     id: Annotated[int, Field(ge=1)]
@@ -154,6 +168,13 @@ class Scenario:
     def drone_ids(self) -> tuple[int, ...]:
         return tuple(d.id for d in self.drones)
 
+    @property
+    def content_hash(self) -> str:
+        """A fingerprint of everything the scenario says (12 hex digits of a SHA-256 over its
+        canonical JSON): equal for equal scenarios, different after any edit, name included."""
+        canonical = json.dumps(dataclasses.asdict(self), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(canonical.encode()).hexdigest()[:12]
+
     def drone(self, drone_id: int) -> DroneSpec:
         """The drone with id ``drone_id``."""
         for d in self.drones:
@@ -182,6 +203,19 @@ def _check_scenario(s: Scenario) -> None:
         )
     if f.n_lanes < 1:
         raise ValueError(f"field.lane_spacing: {f.lane_spacing} m leaves no lane in the field")
+    for name, size in (("width", f.width), ("height", f.height)):
+        if size > MAX_FIELD_SIZE_M:
+            raise ValueError(
+                f"field.{name}: {size} m is beyond the {MAX_FIELD_SIZE_M} m that a prediction "
+                "message carries (positions travel as int16 centimetres)"
+            )
+    for key, items in (("targets", s.targets), ("drones", s.drones)):
+        for k, item in enumerate(items):
+            if item.id > MAX_ID:
+                raise ValueError(
+                    f"{key}[{k}].id: {item.id} does not fit the one-byte id of the wire formats "
+                    f"(at most {MAX_ID})"
+                )
     target_ids = set(s.target_ids)
     for k, t in enumerate(s.targets):
         if t.lane >= f.n_lanes:
@@ -222,6 +256,7 @@ def _check_scenario(s: Scenario) -> None:
                 raise ValueError(f"drones[{k}].targets: target {tid} is not in targets")
         if d.start is not None and not (0 <= d.start[0] <= f.width and 0 <= d.start[1] <= f.height):
             raise ValueError(f"drones[{k}].start: {list(d.start)} is outside the field")
+    _check_footprints(s)
     for k in range(1, len(s.drones)):
         if s.drones[k].altitude > s.drones[k - 1].altitude:
             raise ValueError(
@@ -232,6 +267,24 @@ def _check_scenario(s: Scenario) -> None:
     for k, t in enumerate(s.targets):
         if t.id not in watched:
             raise ValueError(f"targets[{k}]: target {t.id} is watched by no drone")
+
+
+def _check_footprints(s: Scenario) -> None:
+    """Every drone must be able to hold all its targets in view at once: their start positions
+    (vehicle extent included) must fit inside its camera footprint."""
+    start = {t.id: (t.start_x, s.field.lane_y(t.lane)) for t in s.targets}
+    for k, d in enumerate(s.drones):
+        xs = [start[i][0] for i in d.targets]
+        ys = [start[i][1] for i in d.targets]
+        half_w, half_h = s.camera.footprint_half_extent(d.altitude - s.vehicle.height)
+        need_w = max(xs) - min(xs) + s.vehicle.length
+        need_h = max(ys) - min(ys) + s.vehicle.length
+        if need_w > 2 * half_w or need_h > 2 * half_h:
+            raise ValueError(
+                f"drones[{k}].targets: its targets start spread over {need_w:.1f} x {need_h:.1f} m"
+                f" but its footprint at {d.altitude} m is {2 * half_w:.1f} x {2 * half_h:.1f} m; "
+                "no position holds them all in view (fly higher or watch fewer targets)"
+            )
 
 
 def _check_unique(values: list[int], where: str, key: str, what: str = "id") -> None:

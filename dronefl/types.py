@@ -105,20 +105,3 @@ class CameraView:
     yaw: float
     targets: tuple[TargetState, ...]
     image: np.ndarray | None = None
-
-
-@dataclass(frozen=True)
-class Observation:
-    """What one drone has on board after one step: its odometry and its detections."""
-
-    drone_id: int
-    t: float
-    odometry: Odometry
-    detections: tuple[Detection, ...]
-
-    def detection_of(self, target_id: int) -> Detection | None:
-        """The detection of ``target_id`` in this frame, or ``None`` if it was missed."""
-        for detection in self.detections:
-            if detection.target_id == target_id:
-                return detection
-        return None

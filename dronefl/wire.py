@@ -1,4 +1,4 @@
-"""Wire formats of the per-step messages between drones and the cloud, and byte accounting.
+"""Wire formats of the per-step messages between drones and the cloud.
 
 Every 0.2 s each drone sends its predictions up and receives its control down. Both are packed
 little-endian with :mod:`struct` so that the bytes counted are the bytes a radio would carry
@@ -31,7 +31,6 @@ Model weights exchanged by federated learning are counted separately by :mod:`dr
 from __future__ import annotations
 
 import struct
-from collections import defaultdict
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -127,43 +126,3 @@ def raw_inputs_message(
     odometry vector ``(12,)`` and the ``boxes`` it detected (format in the module docstring)."""
     head = _RAW_HEAD.pack(drone_id, step, *np.asarray(odometry, dtype=np.float32))
     return head + b"".join(_RAW_BOX.pack(d.target_id, *d.box) for d in boxes)
-
-
-class ByteCounter:
-    """Bytes sent per (drone, direction, message kind), e.g. ``(2, "up", "predictions")``."""
-
-    def __init__(self) -> None:
-        self._bytes: dict[tuple[int, str, str], int] = defaultdict(int)
-
-    def add(self, drone_id: int, direction: str, kind: str, n_bytes: int) -> None:
-        """Count ``n_bytes`` sent ``direction`` (``up`` to the cloud or ``down``)."""
-        if direction not in ("up", "down"):
-            raise ValueError(f"direction must be 'up' or 'down', got {direction!r}")
-        self._bytes[(drone_id, direction, kind)] += n_bytes
-
-    def total(
-        self, drone_id: int | None = None, direction: str | None = None, kind: str | None = None
-    ) -> int:
-        """Bytes matching every given filter."""
-        return sum(
-            n
-            for (d, way, k), n in self._bytes.items()
-            if (drone_id is None or d == drone_id)
-            and (direction is None or way == direction)
-            and (kind is None or k == kind)
-        )
-
-    def kb_per_second(self, seconds: float) -> dict:
-        """Per-drone KB/s (1 KB = 1000 B) over ``seconds`` of simulated time, with a breakdown
-        by direction and message kind, and the mean over drones."""
-        drones = sorted({d for d, _, _ in self._bytes})
-        per_drone = {}
-        for d in drones:
-            breakdown = {
-                f"{way}:{k}": n / 1000 / seconds
-                for (dd, way, k), n in sorted(self._bytes.items())
-                if dd == d
-            }
-            per_drone[str(d)] = {"total": self.total(d) / 1000 / seconds, **breakdown}
-        mean = float(np.mean([v["total"] for v in per_drone.values()])) if drones else 0.0
-        return {"mean_per_drone": mean, "drones": per_drone}

@@ -29,6 +29,9 @@ EXPECTED = {
     "missing_drones": "drones: Field required",
     "invalid_yaml": "not valid YAML (line",
     "not_a_mapping": "a scenario must be a mapping",
+    "field_beyond_wire": "field.width: 400.0 m is beyond the 327.67 m that a prediction message",
+    "id_beyond_byte": "targets[1].id: 300 does not fit the one-byte id",
+    "footprint_too_small": "drones[0].targets: its targets start spread over 104.0 x 104.0 m",
 }
 
 

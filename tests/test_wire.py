@@ -5,7 +5,6 @@ import pytest
 
 from dronefl.wire import (
     MAX_COORDINATE,
-    ByteCounter,
     ControlMessage,
     PredictionMessage,
     WireError,
@@ -57,18 +56,3 @@ def test_control_message_round_trip():
 def test_damaged_prediction_messages_are_rejected(data, match):
     with pytest.raises(WireError, match=match):
         PredictionMessage.decode(data)
-
-
-def test_byte_counter_rates_and_breakdown():
-    counter = ByteCounter()
-    for _ in range(50):  # 10 s at 5 Hz
-        counter.add(1, "up", "predictions", 19)
-        counter.add(1, "down", "control", 14)
-    counter.add(2, "up", "weights", 5000)
-    rates = counter.kb_per_second(10.0)
-    assert rates["drones"]["1"]["total"] == pytest.approx((19 + 14) * 5 / 1000)
-    assert rates["drones"]["1"]["up:predictions"] == pytest.approx(0.095)
-    assert rates["drones"]["2"]["total"] == pytest.approx(0.5)
-    assert rates["mean_per_drone"] == pytest.approx((0.165 + 0.5) / 2)
-    with pytest.raises(ValueError, match="direction"):
-        counter.add(1, "sideways", "x", 1)

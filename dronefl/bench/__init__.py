@@ -9,7 +9,7 @@ Each module measures one part and returns plain dicts of figures (:mod:`~dronefl
 * :mod:`~dronefl.bench.closed_loop`: end-to-end Case 3 speed, DroneFL's communication;
 * :mod:`~dronefl.bench.bandwidth`: communication per drone, DroneFL and centralized;
 * :mod:`~dronefl.bench.energy`: RAPL readings or labelled estimates;
-* :mod:`~dronefl.bench.report`: goals, Table II, ``bench.md``;
+* goals, Table II and ``bench.md``: :mod:`dronefl.report.bench`;
 * :mod:`~dronefl.bench.run`: :func:`~dronefl.bench.run.run_bench`, the whole benchmark;
-* :mod:`~dronefl.bench.bandwidthand`: the ``dronefl bench`` command.
+* :mod:`~dronefl.bench.command`: the ``dronefl bench`` command.
 """

@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from dronefl.bench.vision import Frame
+from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
 from dronefl.wire import raw_inputs_message
 
@@ -54,28 +55,27 @@ def centralized_uplink(frames: dict[str, list[Frame]], rate_hz: float) -> dict:
     }
 
 
-def dronefl_comm(metrics: dict, fl_period: float) -> dict:
+def dronefl_comm(metrics: EpisodeMetrics, fl_period: float) -> dict:
     """DroneFL's KB/s per drone from a closed-loop episode's ``metrics``
     (:func:`dronefl.experiments.track.run_episode`), with the mean over drones per message
     type, and ``at_fl_period``: the same traffic with exactly one round per ``fl_period`` s
     (the episode's last period ends without a round). ``None`` there when no round ran."""
-    comm = metrics["communication_kb_per_s"]
-    drones = comm["drones"]
-    kinds = sorted({k for v in drones.values() for k in v if k != "total"})
-    by_kind = {k: float(np.mean([v.get(k, 0.0) for v in drones.values()])) for k in kinds}
-    weights = sum(v for k, v in by_kind.items() if k.endswith(":weights"))
-    rounds = len(metrics["fl_rounds"])
-    per_round_kb = weights * metrics["sim_seconds"] / rounds if rounds else None
-    steady = comm["mean_per_drone"] - weights
+    comm = metrics.communication
+    by_kind = {f"{way}:{kind}": comm.mean_per_drone(way, kind) for way, kind in comm.kinds()}
+    weights = comm.mean_per_drone(kind="weights")
+    rounds = len(metrics.fl_rounds)
+    per_round_kb = weights * metrics.sim_seconds / rounds if rounds else None
+    total = comm.mean_per_drone()
+    steady = total - weights
     return {
         "what": "predictions up + controls down every step, weights down + up every FL round",
         "unit": "KB/s",
-        "kb_per_s": comm["mean_per_drone"],
+        "kb_per_s": total,
         "at_fl_period": steady + per_round_kb / fl_period if per_round_kb is not None else None,
         "fl_period_s": fl_period,
         "fl_rounds": rounds,
         "weights_kb_per_round": per_round_kb,
         "by_type": by_kind,
-        "drones": {d: v["total"] for d, v in drones.items()},
+        "drones": {str(d): comm.kb_per_s(d) for d in comm.drone_ids},
         "paper_kb_per_s": PAPER_KB_PER_S["dronefl"],
     }

@@ -1,4 +1,5 @@
-"""End to end: Case 3 closed-loop episodes with DroneFL and, as the reference, fixed models.
+"""End to end: closed-loop episodes (Case 3 by default) with DroneFL and, as the reference,
+fixed models.
 
 Both episodes run in the same process, one after the other, with the settings of Table I
 (orchard, projection detector, seed 0, an FL round every 100 s for DroneFL; models pretrained in
@@ -14,28 +15,32 @@ from pathlib import Path
 from time import perf_counter
 
 from dronefl.bench.bandwidth import dronefl_comm
+from dronefl.config import Scenario
+from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.simulation import backend_config
 
 FL_PERIOD_S = 100.0
 
 
-def speed(metrics: dict) -> dict:
+def speed(metrics: EpisodeMetrics) -> dict:
     """The speed figures of one episode's ``metrics``: real-time factor (x) with and without
     the FL rounds, wall seconds, FL seconds and rounds, planner ms per step."""
-    sim, wall, fl = metrics["sim_seconds"], metrics["wall_seconds"], metrics["fl_seconds"]
     return {
-        "realtime_factor": metrics["realtime_factor"],
-        "realtime_factor_without_fl": sim / (wall - fl),
-        "wall_seconds": wall,
-        "fl_seconds": fl,
-        "fl_rounds": len(metrics["fl_rounds"]),
-        "planner_ms_per_step": metrics["planner_ms_per_step"],
+        "realtime_factor": metrics.realtime_factor,
+        "realtime_factor_without_fl": metrics.sim_seconds
+        / (metrics.wall_seconds - metrics.fl_seconds),
+        "wall_seconds": metrics.wall_seconds,
+        "fl_seconds": metrics.fl_seconds,
+        "fl_rounds": len(metrics.fl_rounds),
+        "planner_ms_per_step": metrics.planner_ms_per_step,
     }
 
 
-def bench_closed_loop(out: Path, duration: float, pretrained: Path) -> dict[str, dict]:
-    """Run the ``fixed``, ``dronefl`` and ``dronefl`` with fp16 weights Case 3 episodes of
+def bench_closed_loop(
+    scenario: Scenario, out: Path, duration: float, pretrained: Path
+) -> dict[str, dict]:
+    """Run the ``fixed``, ``dronefl`` and ``dronefl`` with fp16 weights episodes of ``scenario``,
     ``duration`` s into ``out/fixed``, ``out/dronefl``, ``out/dronefl_fp16``:
 
     * ``closed_loop``: DroneFL's real-time factor (x) over the episode's loop, with the fixed
@@ -49,7 +54,7 @@ def bench_closed_loop(out: Path, duration: float, pretrained: Path) -> dict[str,
             "dronefl_fp16": ("dronefl", "float16")}  # fmt: skip
     for name, (method, dtype) in runs.items():
         config = TrackConfig(
-            case=3,
+            scenario=scenario,
             out=out / name,
             method=method,
             duration=duration,
@@ -68,8 +73,8 @@ def bench_closed_loop(out: Path, duration: float, pretrained: Path) -> dict[str,
     return {
         "closed_loop": {
             "what": (
-                f"Case 3 closed loop, orchard, projection detector, {duration:g} s, DroneFL with "
-                f"an FL round every {FL_PERIOD_S:g} s"
+                f"{scenario.name} closed loop, orchard, projection detector, {duration:g} s, "
+                f"DroneFL with an FL round every {FL_PERIOD_S:g} s"
             ),
             "unit": "x real time",
             **ours,

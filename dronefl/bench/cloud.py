@@ -17,8 +17,10 @@ from time import perf_counter
 import numpy as np
 
 from dronefl.bench.timing import latency, with_reference
-from dronefl.config import Scenario, load_scenario
+from dronefl.config import Scenario
+from dronefl.experiments.track import fusion_config
 from dronefl.planning import DroneFLPlanner, double_integrator_step
+from dronefl.sim.world import drone_start_positions
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
 from dronefl.tracking.models import ConstantVelocity
 from dronefl.types import DroneState
@@ -35,17 +37,10 @@ def _start(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, list[DroneState]
     velocities = np.array(
         [[t.speed if t.heading == "east" else -t.speed, 0.0] for t in scenario.targets]
     )
-    column = {t.id: k for k, t in enumerate(scenario.targets)}
+    starts = drone_start_positions(scenario, positions)
     drones = [
-        DroneState(
-            d.id,
-            np.array(d.start, dtype=float)
-            if d.start is not None
-            else positions[[column[j] for j in d.targets]].mean(axis=0),
-            np.zeros(2),
-            d.altitude,
-        )
-        for d in scenario.drones
+        DroneState(d.id, start, np.zeros(2), d.altitude)
+        for d, start in zip(scenario.drones, starts, strict=True)
     ]
     return positions, velocities, drones
 
@@ -128,17 +123,16 @@ def filterpy_fusion(
     return seconds, {j: kf.x.copy() for j, kf in filters.items()}
 
 
-def bench_cloud(steps: int) -> dict[str, dict]:
-    """Case 3, ``steps`` steps (>= 20): ``fusion`` per step (ms, with the filterpy reference
+def bench_cloud(scenario: Scenario, steps: int) -> dict[str, dict]:
+    """``scenario``, ``steps`` steps (>= 20): ``fusion`` per step (ms, with the filterpy reference
     when filterpy is installed) and ``planner`` per step (forecast + plan, ms)."""
     if steps < 2 * WARMUP_STEPS:
         raise ValueError(f"steps must be >= {2 * WARMUP_STEPS}, got {steps}")
-    scenario = load_scenario("case3")
-    config = FusionConfig()  # Case 3's constant-speed targets: q = 0.1 m^2/s^3, as in track
+    config = fusion_config(scenario)  # as in the closed loop
     fusion_s, plan_s, stream = fly(scenario, steps, config)
     kept = slice(WARMUP_STEPS, None)
     per_step = float(np.mean([len(m) for m in stream[kept]]))
-    what = f"adaptive EKF fusion, one Case 3 step ({per_step:.1f} measurements)"
+    what = f"adaptive EKF fusion, one {scenario.name} step ({per_step:.1f} measurements)"
     fusion = {**latency(what, fusion_s[kept], "ms", 1), "measurements_per_step": per_step}
     try:
         reference = filterpy_fusion(stream, scenario.dt, config)[0][kept]
@@ -148,5 +142,6 @@ def bench_cloud(steps: int) -> dict[str, dict]:
         fusion = with_reference(
             fusion, latency("filterpy KalmanFilter, same stream, fixed R", reference, "ms", 1)
         )
-    planner = latency("DroneFL planner, one Case 3 step (forecast + plan)", plan_s[kept], "ms", 1)
+    what = f"DroneFL planner, one {scenario.name} step (forecast + plan)"
+    planner = latency(what, plan_s[kept], "ms", 1)
     return {"fusion": fusion, "planner": planner}

@@ -25,6 +25,9 @@ def bench(
     pretrained: Annotated[
         Path, typer.Option("--pretrained", help="Pretrained models for the closed loop (cached).")
     ] = Path("runs/pretrained"),
+    scenario: Annotated[
+        str, typer.Option("--scenario", "-s", help="Built-in scenario or YAML path.")
+    ] = "case3",
 ) -> None:
     """Run every performance benchmark and write DIR/bench.json and DIR/bench.md (figures with
     their threads and references, goals, energy estimates, Table II beside the paper's).
@@ -32,10 +35,12 @@ def bench(
     Example: dronefl bench --out runs/bench        dronefl bench --quick --only cloud,predictor
     """
     from dronefl.bench.run import BenchError, run_bench
+    from dronefl.config import load_scenario
 
+    spec = load_scenario(scenario)
     groups = tuple(g.strip() for g in only.split(",") if g.strip())
     try:
-        results = run_bench(out, quick=quick, only=groups, pretrained=pretrained)
+        results = run_bench(out, quick=quick, only=groups, pretrained=pretrained, scenario=spec)
     except BenchError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(code=2) from None

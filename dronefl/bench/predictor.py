@@ -19,7 +19,7 @@ from torch import nn
 
 from dronefl.bench.energy import EnergyMeter
 from dronefl.bench.timing import latency, time_interleaved, with_reference
-from dronefl.config import load_scenario
+from dronefl.config import Scenario
 from dronefl.experiments.simulate import simulate
 from dronefl.logs import load_run
 from dronefl.models.model import (
@@ -81,11 +81,13 @@ class StockPredictor(nn.Module):
         return self.head(self.decoder(y, x)) * self.output_scale  # (B, L_f, 2) m
 
 
-def record_windows(folder: Path, duration: float, per_target: int) -> tuple[WindowSet, dict]:
-    """Record ``duration`` s of Case 3 into ``folder``; return up to ``per_target`` windows of
-    each of drone 1's 6 targets and one drone step (the ``predict`` arguments of the step whose
-    window holds the most detected targets)."""
-    simulate(load_scenario("case3"), duration=duration, seed=0, out=folder, progress=False,
+def record_windows(
+    scenario: Scenario, folder: Path, duration: float, per_target: int
+) -> tuple[WindowSet, dict]:
+    """Record ``duration`` s of ``scenario`` into ``folder``; return up to ``per_target``
+    windows of each of drone 1's targets and one drone step (the ``predict`` arguments of the
+    step whose window holds the most detected targets)."""
+    simulate(scenario, duration=duration, seed=0, out=folder, progress=False,
              plot=False)  # fmt: skip
     logs, truth = load_run(folder)
     log = logs[1]

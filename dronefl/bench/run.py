@@ -20,12 +20,12 @@ from pathlib import Path
 
 from rich.console import Console
 
-from dronefl.bench import closed_loop, cloud, comm, predictor, simulator, vision
+from dronefl.bench import bandwidth, closed_loop, cloud, predictor, simulator, vision
 from dronefl.bench.energy import EnergyMeter, rapl_meter, rapl_status
 from dronefl.bench.machine import load_average, machine_info
-from dronefl.bench.report import energy_estimates, evaluate_goals, markdown, summary_line
-from dronefl.config import Environment, load_scenario
+from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.io import atomic_write_json, atomic_write_text
+from dronefl.report.bench import energy_estimates, evaluate_goals, markdown, summary_line
 
 SCHEMA_VERSION = 1
 
@@ -85,12 +85,15 @@ class BenchContext:
     work: Path
     pretrained: Path
     meter: EnergyMeter | None
+    scenario: Scenario
 
 
 def _predictor(ctx: BenchContext) -> dict[str, dict]:
     s = ctx.sizes
     with tempfile.TemporaryDirectory(dir=ctx.work) as tmp:
-        data, step = predictor.record_windows(Path(tmp), s.record_seconds, s.windows_per_target)
+        data, step = predictor.record_windows(
+            ctx.scenario, Path(tmp), s.record_seconds, s.windows_per_target
+        )
     return {
         **predictor.bench_inference(step, s.inference_calls, s.inference_rounds, ctx.meter),
         **predictor.bench_training(data, s.training_rounds, ctx.meter),
@@ -99,24 +102,26 @@ def _predictor(ctx: BenchContext) -> dict[str, dict]:
 
 def _vision(ctx: BenchContext) -> dict[str, dict]:
     s = ctx.sizes
-    frames = {env: vision.render_frames(env, s.frames, s.flight_seconds) for env in s.environments}
-    rate_hz = load_scenario("case3").rate_hz
+    frames = {
+        env: vision.render_frames(ctx.scenario, env, s.frames, s.flight_seconds)
+        for env in s.environments
+    }
     return {
-        **vision.bench_detector(frames, ctx.meter),
-        "centralized_uplink": comm.centralized_uplink(frames, rate_hz),
+        **vision.bench_detector(frames, ctx.scenario.target_ids, ctx.meter),
+        "centralized_uplink": bandwidth.centralized_uplink(frames, ctx.scenario.rate_hz),
     }
 
 
 #: Benchmark groups in the order they run (fast ones first).
 GROUPS: dict[str, Callable[[BenchContext], dict[str, dict]]] = {
-    "cloud": lambda ctx: cloud.bench_cloud(ctx.sizes.cloud_steps),
+    "cloud": lambda ctx: cloud.bench_cloud(ctx.scenario, ctx.sizes.cloud_steps),
     "simulator": lambda ctx: simulator.bench_simulator(
-        ctx.sizes.sim_seconds, ctx.sizes.environments
+        ctx.scenario, ctx.sizes.sim_seconds, ctx.sizes.environments
     ),
     "predictor": _predictor,
     "vision": _vision,
     "closed_loop": lambda ctx: closed_loop.bench_closed_loop(
-        ctx.work / "closed_loop", ctx.sizes.episode_seconds, ctx.pretrained
+        ctx.scenario, ctx.work / "closed_loop", ctx.sizes.episode_seconds, ctx.pretrained
     ),
 }
 
@@ -142,6 +147,7 @@ def run_bench(
     pretrained: Path = Path("runs/pretrained"),
     progress: bool = True,
     sizes: BenchSizes | None = None,
+    scenario: Scenario | None = None,
 ) -> dict:
     """Run the benchmark groups ``only`` (default: all) and write ``out/bench.json`` and
     ``out/bench.md``; returns what ``bench.json`` holds.
@@ -156,7 +162,8 @@ def run_bench(
     out.mkdir(parents=True, exist_ok=True)
     sizes = sizes or (QUICK if quick else FULL)
     console = Console(stderr=True, quiet=not progress)
-    ctx = BenchContext(sizes, out, Path(pretrained), rapl_meter())
+    scenario = scenario or load_scenario("case3")
+    ctx = BenchContext(sizes, out, Path(pretrained), rapl_meter(), scenario)
     started, wall, load = time.strftime("%Y-%m-%d %H:%M:%S %Z"), time.perf_counter(), load_average()
     figures: dict[str, dict] = {}
     for group in groups:
@@ -169,6 +176,7 @@ def run_bench(
         results = {
             "schema": SCHEMA_VERSION,
             "quick": quick,
+            "scenario": scenario.name,
             "started": started,
             "wall_seconds": time.perf_counter() - wall,
             "groups": list(groups[: groups.index(group) + 1]),

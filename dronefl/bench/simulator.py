@@ -8,15 +8,15 @@ from __future__ import annotations
 
 from time import perf_counter
 
-from dronefl.config import Environment, load_scenario
+from dronefl.config import Environment, Scenario
 from dronefl.perception import make_detector
 from dronefl.sim.pilot import PilotController
 from dronefl.sim.world import World
 
 
-def realtime_factor(case: str, environment: Environment, duration: float) -> float:
-    """Simulated seconds per wall-clock second over ``duration`` s of ``case``."""
-    world = World(load_scenario(case), environment, seed=0)
+def realtime_factor(scenario: Scenario, environment: Environment, duration: float) -> float:
+    """Simulated seconds per wall-clock second over ``duration`` s of ``scenario``."""
+    world = World(scenario, environment, seed=0)
     detector, pilot = make_detector("projection", world), PilotController(world.rng("pilot"))
     steps = int(duration * world.scenario.rate_hz)
     started = perf_counter()
@@ -28,13 +28,16 @@ def realtime_factor(case: str, environment: Environment, duration: float) -> flo
     return steps * world.dt / (perf_counter() - started)
 
 
-def bench_simulator(duration: float, environments: tuple[Environment, ...]) -> dict[str, dict]:
-    """``simulator``: Case 3's real-time factor (x) in each of ``environments``, ``duration`` s
-    each; ``min`` is the slowest environment's."""
-    factors = {env: realtime_factor("case3", env, duration) for env in environments}
+def bench_simulator(
+    scenario: Scenario, duration: float, environments: tuple[Environment, ...]
+) -> dict[str, dict]:
+    """``simulator``: ``scenario``'s real-time factor (x) in each of ``environments``,
+    ``duration`` s each; ``min`` is the slowest environment's."""
+    factors = {env: realtime_factor(scenario, env, duration) for env in environments}
     return {
         "simulator": {
-            "what": "Case 3 simulator + projection detector + scripted pilot, no file I/O",
+            "what": f"{scenario.name} simulator + projection detector + scripted pilot, "
+            "no file I/O",
             "unit": "x real time",
             "per_environment": factors,
             "min": min(factors.values()),

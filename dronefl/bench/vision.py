@@ -20,7 +20,7 @@ import numpy as np
 
 from dronefl.bench.energy import EnergyMeter
 from dronefl.bench.timing import latency, time_calls
-from dronefl.config import Environment, load_scenario
+from dronefl.config import Environment, Scenario
 from dronefl.perception.yolo import YoloDetector
 from dronefl.sim.pilot import PilotController
 from dronefl.sim.world import World
@@ -40,12 +40,13 @@ class Frame:
     render_seconds: float
 
 
-def render_frames(environment: Environment, count: int, duration: float) -> list[Frame]:
-    """About ``count`` frames (rounded up to whole sets of the 4 drones' views) of Case 3 in
+def render_frames(
+    scenario: Scenario, environment: Environment, count: int, duration: float
+) -> list[Frame]:
+    """About ``count`` frames (rounded up to whole sets of the drones' views) of ``scenario`` in
     ``environment``, taken at evenly spaced instants of ``duration`` s of scripted flight."""
     if count < 1 or duration <= 0:
         raise ValueError(f"need count >= 1 and duration > 0, got {count}, {duration}")
-    scenario = load_scenario("case3")
     world = World(scenario, environment, seed=0)
     pilot = PilotController(world.rng("pilot"))
     sets = -(-count // len(scenario.drones))
@@ -67,7 +68,9 @@ def render_frames(environment: Environment, count: int, duration: float) -> list
 
 
 def bench_detector(
-    frames: dict[str, list[Frame]], measure_energy: EnergyMeter | None = None
+    frames: dict[str, list[Frame]],
+    target_ids: tuple[int, ...],
+    measure_energy: EnergyMeter | None = None,
 ) -> dict[str, dict]:
     """Per 640 x 640 frame, ms, of ``frames`` (per environment):
 
@@ -77,7 +80,7 @@ def bench_detector(
 
     With ``measure_energy`` the detector's energy per frame is measured too.
     """
-    detector = YoloDetector(threads=1, target_ids=load_scenario("case3").target_ids)
+    detector = YoloDetector(threads=1, target_ids=target_ids)
     per_env, all_seconds = {}, []
     for env, env_frames in frames.items():
         # Cycled: after the 5 warm-up calls the timed calls see every frame once.

@@ -1,23 +1,31 @@
 """Pretraining for the closed loop: models learned offline in the crop field (SPEC §8).
 
-For a case, :func:`pretrain` records ``duration`` s of the crop field under the scripted pilot
-(seed :data:`PRETRAIN_SEED`, never used by an evaluation episode) and trains, with ground-truth
-labels and windows L_p = 10 -> L_f = 1:
+For a scenario, :func:`pretrain` records ``duration`` s of the crop field under the scripted
+pilot (seed :data:`PRETRAIN_SEED`, never used by an evaluation episode) and trains, with
+ground-truth labels and windows L_p -> L_f = 1:
 
 * ``dronefl``: the position-invariant AdaIN model by federated learning (FedAvg on Flower);
   the fixed-distributed and DroneFL episodes both start from it;
 * ``centralized``: the large model on the pooled windows of every drone, in the cloud.
 
-Results are cached as ``<folder>/case<N>/<kind>/checkpoint.npz`` and reused by every episode.
+Results are cached under ``<folder>/<scenario name>/`` and keyed by content: the recording by a
+hash of the scenario, the recording seed and duration (``data-<hash>/``), each model by a hash of
+that and of every training setting (``<kind>-<hash>/checkpoint.npz``), so an edited scenario or
+a changed setting never reuses stale weights. Pretraining runs its own Flower simulation and
+must be done before an episode starts its session (:func:`pretrained_state`).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
+import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from dronefl.config import load_scenario
+from dronefl.config import Scenario
 from dronefl.experiments.fl_offline import run_centralized
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import load_checkpoint
@@ -27,59 +35,91 @@ from dronefl.progress import progress_bar
 
 PRETRAIN_SEED = 1000
 KINDS = ("dronefl", "centralized")
+#: Settings that say where, not what: left out of the cache key.
+_NOT_IN_KEY = ("run_dir", "out_dir", "resume")
 
 
-def pretrain_settings(case: int, kind: str, folder: Path, rounds: int = 20) -> FlSettings:
-    """Where and how ``kind`` is pretrained for ``case``."""
-    if kind not in KINDS:
-        raise ValueError(f"pretrained model kind must be one of {KINDS}, got {kind!r}")
-    root = Path(folder) / f"case{case}"
-    return FlSettings(
-        run_dir=str(root / "data"),
-        out_dir=str(root / kind),
-        method=kind,
-        rounds=rounds,
-        past_steps=10,
-        future_steps=1,
-        stride=2,
-        seed=0,
-    )
+@dataclass(frozen=True)
+class PretrainSpec:
+    """What is pretrained: ``kind`` (one of :data:`KINDS`) for ``scenario``, on ``duration``
+    s of crop field recorded with seed ``recording_seed``, with windows of ``past_steps``
+    L_p -> 1 every ``stride`` samples, for ``rounds`` FL rounds (or ``rounds`` x E epochs of
+    centralized training)."""
+
+    scenario: Scenario
+    kind: str = "dronefl"
+    past_steps: int = 10
+    stride: int = 2
+    rounds: int = 20
+    duration: float = 600.0
+    recording_seed: int = PRETRAIN_SEED
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"pretrained model kind must be one of {KINDS}, got {self.kind!r}")
+        if not self.duration > 0:
+            raise ValueError(f"pretraining duration must be positive, got {self.duration}")
+
+    @property
+    def data_key(self) -> str:
+        """Hash of what the recording depends on."""
+        return _digest([self.scenario.content_hash, self.duration, self.recording_seed])
+
+    def settings(self, folder: Path) -> FlSettings:
+        """The Flower/centralized training settings, writing under ``folder``."""
+        root = Path(folder) / self.scenario.name
+        base = FlSettings(
+            run_dir=str(root / f"data-{self.data_key}"),
+            out_dir="",
+            method=self.kind,
+            rounds=self.rounds,
+            past_steps=self.past_steps,
+            future_steps=1,
+            stride=self.stride,
+            seed=0,
+        )
+        key = _digest([self.data_key, _settings_key(base), repr(base.model)])
+        return dataclasses.replace(base, out_dir=str(root / f"{self.kind}-{key}"))
 
 
-def pretrain(
-    case: int,
-    kind: str,
-    folder: Path,
-    rounds: int = 20,
-    duration: float = 600.0,
-    progress: bool = True,
-) -> dict[str, torch.Tensor]:
-    """Record the crop field (if not yet recorded) and train ``kind``; returns its weights."""
-    settings = pretrain_settings(case, kind, folder, rounds)
+def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[str, torch.Tensor]:
+    """Record the crop field (if not yet recorded) and train ``spec.kind``; returns its
+    weights. Runs a Flower simulation for ``dronefl``: never call it inside another one."""
+    settings = spec.settings(folder)
     data = Path(settings.run_dir)
     if not (data / "ground_truth.npz").is_file():
         simulate(
-            load_scenario(f"case{case}"),
+            spec.scenario,
             environment="crop_field",
-            duration=duration,
-            seed=PRETRAIN_SEED,
+            duration=spec.duration,
+            seed=spec.recording_seed,
             out=data,
             progress=progress,
             plot=False,
         )
-    with progress_bar(f"pretrain case{case} {kind}", rounds, progress) as advance:
-        train = run_federated if kind == "dronefl" else run_centralized
+    name = f"pretrain {spec.scenario.name} {spec.kind}"
+    with progress_bar(name, spec.rounds, progress) as advance:
+        train = run_federated if spec.kind == "dronefl" else run_centralized
         train(settings, on_round=lambda _: advance(1))
-    return load_checkpoint(settings.checkpoint_path, settings.history_path, kind).state
+    return load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind).state
 
 
 def pretrained_state(
-    case: int, kind: str, folder: Path, progress: bool = True
+    spec: PretrainSpec, folder: Path, progress: bool = True
 ) -> dict[str, torch.Tensor]:
-    """The cached pretrained weights of ``kind`` for ``case``, pretraining them if missing."""
-    settings = pretrain_settings(case, kind, folder)
+    """The cached pretrained weights of ``spec``, pretraining them if missing."""
+    settings = spec.settings(folder)
     if settings.checkpoint_path.is_file():
-        checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, kind)
+        checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
         if checkpoint.server_round >= settings.rounds:
             return checkpoint.state
-    return pretrain(case, kind, folder, progress=progress)
+    return pretrain(spec, folder, progress=progress)
+
+
+def _settings_key(settings: FlSettings) -> dict:
+    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in _NOT_IN_KEY}
+
+
+def _digest(parts: list) -> str:
+    text = json.dumps(parts, sort_keys=True, default=str, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:12]

@@ -10,18 +10,48 @@ from __future__ import annotations
 
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from pydantic import TypeAdapter
 
 from dronefl.config import Environment, Scenario
-from dronefl.io import atomic_write_json
 from dronefl.logs import GroundTruth, OnboardLog
 from dronefl.perception import make_detector
 from dronefl.progress import progress_bar
+from dronefl.results import save_result
 from dronefl.sim.pilot import PilotController
 from dronefl.sim.world import World
+
+
+@dataclass(frozen=True)
+class DroneSummary:
+    """One drone of a recorded run: ``altitude`` m, its ``targets``, and the fraction of steps
+    in which it detected them (``detection_rate``, over all its targets, and per target)."""
+
+    drone_id: int
+    altitude: float
+    targets: tuple[int, ...]
+    detection_rate: float
+    detection_rate_per_target: dict[int, float]
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """``summary.json`` of a recorded run: what was flown, ``steps`` of the scenario's rate,
+    ``sim_seconds`` and ``wall_seconds`` (s), ``realtime_factor`` (x) and every drone's
+    detection rates."""
+
+    scenario: str
+    environment: str
+    seed: int
+    detector: str
+    steps: int
+    sim_seconds: float
+    wall_seconds: float
+    realtime_factor: float
+    drones: tuple[DroneSummary, ...]
 
 
 def scenario_dict(scenario: Scenario) -> dict:
@@ -110,15 +140,15 @@ def simulate(
             confidence[i],
             meta,
         ).save(out / f"drone_{spec.id}.npz")
-        per_target = {str(tid): float(detected[i, :, column[tid]].mean()) for tid in spec.targets}
+        per_target = {tid: float(detected[i, :, column[tid]].mean()) for tid in spec.targets}
         drones_summary.append(
-            {
-                "drone_id": spec.id,
-                "altitude": spec.altitude,
-                "targets": list(spec.targets),
-                "detection_rate": float(detected[i][:, assigned].mean()),
-                "detection_rate_per_target": per_target,
-            }
+            DroneSummary(
+                drone_id=spec.id,
+                altitude=spec.altitude,
+                targets=tuple(spec.targets),
+                detection_rate=float(detected[i][:, assigned].mean()),
+                detection_rate_per_target=per_target,
+            )
         )
     truth = GroundTruth(
         t,
@@ -133,18 +163,18 @@ def simulate(
         meta,
     )
     truth.save(out / "ground_truth.npz")
-    summary = {
-        "scenario": scenario.name,
-        "environment": world.environment.kind,
-        "seed": seed,
-        "detector": detector,
-        "steps": n_steps,
-        "sim_seconds": n_steps * scenario.dt,
-        "wall_seconds": wall,
-        "realtime_factor": n_steps * scenario.dt / max(wall, 1e-9),
-        "drones": drones_summary,
-    }
-    atomic_write_json(out / "summary.json", summary)
+    summary = RunSummary(
+        scenario=scenario.name,
+        environment=world.environment.kind,
+        seed=seed,
+        detector=detector,
+        steps=n_steps,
+        sim_seconds=n_steps * scenario.dt,
+        wall_seconds=wall,
+        realtime_factor=n_steps * scenario.dt / max(wall, 1e-9),
+        drones=tuple(drones_summary),
+    )
+    save_result(out / "summary.json", summary)
     if plot:
         from dronefl.report.topdown import plot_topdown
 
@@ -154,22 +184,22 @@ def simulate(
             world.camera,
             truth,
             out / "topdown.png",
-            detection_rates={d["drone_id"]: d["detection_rate"] for d in drones_summary},
+            detection_rates={d.drone_id: d.detection_rate for d in drones_summary},
         )
     return summary
 
 
-def format_summary(summary: dict) -> str:
+def format_summary(summary: RunSummary) -> str:
     """Plain-text table of a :func:`simulate` summary."""
     lines = [
-        f"{summary['scenario']} in {summary['environment']} (seed {summary['seed']}, "
-        f"{summary['detector']} detector): {summary['sim_seconds']:.0f} s simulated in "
-        f"{summary['wall_seconds']:.1f} s ({summary['realtime_factor']:.0f}x real time)",
+        f"{summary.scenario} in {summary.environment} (seed {summary.seed}, "
+        f"{summary.detector} detector): {summary.sim_seconds:.0f} s simulated in "
+        f"{summary.wall_seconds:.1f} s ({summary.realtime_factor:.0f}x real time)",
         "drone  altitude  targets        detection rate",
     ]
-    for d in summary["drones"]:
+    for d in summary.drones:
         lines.append(
-            f"{d['drone_id']:>5}  {d['altitude']:>6.1f} m  "
-            f"{json.dumps(d['targets']):<13}  {d['detection_rate']:.3f}"
+            f"{d.drone_id:>5}  {d.altitude:>6.1f} m  "
+            f"{json.dumps(list(d.targets)):<13}  {d.detection_rate:.3f}"
         )
     return "\n".join(lines)

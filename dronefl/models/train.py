@@ -111,6 +111,12 @@ def train_local(
     return TrainStats(n, epoch_loss, (time.perf_counter() - started) / config.epochs)
 
 
+def train_pooled(model: nn.Module, window_sets: list[WindowSet], config: TrainConfig) -> TrainStats:
+    """Centralized training: ``model`` trained in the cloud on every drone's windows pooled
+    into one set (the centralized baselines of Fig. 5 and Table I)."""
+    return train_local(model, WindowSet.concat(window_sets), config)
+
+
 @torch.no_grad()
 def evaluate(model: nn.Module, data: WindowSet, batch_size: int = 1024) -> float:
     """Test MSE in m^2 of ``model`` on ``data`` (dropout off)."""

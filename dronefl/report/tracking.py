@@ -11,6 +11,7 @@ from matplotlib.animation import FuncAnimation, PillowWriter
 from matplotlib.patches import Rectangle
 
 from dronefl.config import Scenario
+from dronefl.experiments.table1 import Table1Row
 from dronefl.io import atomic_write_bytes
 from dronefl.report.topdown import DRONE_COLOURS, TARGET_COLOURS, draw_field, save_figure
 from dronefl.sim.camera import PinholeCamera
@@ -152,12 +153,12 @@ def _animation(scenario, env, camera, log, path: Path, method: str, frames: int)
     buffer_path.unlink()
 
 
-def plot_table1_bars(rows: list[dict], path: Path) -> Path:
-    """Bar chart of prediction error and tracking distance per case and method (mean ± std)."""
-    cases = sorted({r["case"] for r in rows})
-    methods = [
-        m for m in ("centralized", "fixed", "dronefl") if any(r["method"] == m for r in rows)
-    ]
+def plot_table1_bars(rows: list[Table1Row], path: Path) -> Path:
+    """Bar chart of prediction error and tracking distance per scenario and method (mean ±
+    std over seeds), every method that was run."""
+    scenarios = list(dict.fromkeys(r.scenario for r in rows))
+    methods = list(dict.fromkeys(r.method for r in rows))
+    by_key = {(r.scenario, r.method): r for r in rows}
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     width = 0.8 / max(len(methods), 1)
     for ax, metric, label in zip(
@@ -167,17 +168,13 @@ def plot_table1_bars(rows: list[dict], path: Path) -> Path:
         strict=True,
     ):
         for k, method in enumerate(methods):
-            means = [_stat(rows, c, method, metric)[0] for c in cases]
-            stds = [_stat(rows, c, method, metric)[1] for c in cases]
-            x = np.arange(len(cases)) + (k - (len(methods) - 1) / 2) * width
+            cells = [by_key.get((s, method)) for s in scenarios]
+            means = [c.mean[metric] if c else np.nan for c in cells]
+            stds = [c.std[metric] if c else 0.0 for c in cells]
+            x = np.arange(len(scenarios)) + (k - (len(methods) - 1) / 2) * width
             ax.bar(x, means, width, yerr=stds, capsize=3, label=method)
-        ax.set_xticks(np.arange(len(cases)), [f"Case {c}" for c in cases])
+        ax.set_xticks(np.arange(len(scenarios)), scenarios)
         ax.set_ylabel(label)
         ax.set_yscale("log")
     axes[0].legend(fontsize=8)
     return save_figure(fig, path)
-
-
-def _stat(rows: list[dict], case: int, method: str, metric: str) -> tuple[float, float]:
-    values = [r[metric] for r in rows if r["case"] == case and r["method"] == method]
-    return (float(np.mean(values)), float(np.std(values))) if values else (np.nan, 0.0)

@@ -26,13 +26,15 @@ from dronefl.config import CameraSpec
 class PinholeCamera:
     """Pinhole intrinsics: ``width_px`` x ``height_px`` sensor with ``hfov_deg`` horizontal FOV."""
 
-    width_px: int = 1280
-    height_px: int = 720
-    hfov_deg: float = 80.0
-    detector_px: int = 640
+    width_px: int
+    height_px: int
+    hfov_deg: float
+    detector_px: int
 
     @classmethod
-    def from_spec(cls, spec: CameraSpec) -> PinholeCamera:
+    def from_spec(cls, spec: CameraSpec | None = None) -> PinholeCamera:
+        """The camera a scenario describes (default: :class:`CameraSpec`'s defaults)."""
+        spec = spec or CameraSpec()
         return cls(spec.width_px, spec.height_px, spec.hfov_deg, spec.detector_px)
 
     @property

@@ -24,6 +24,21 @@ def stream_rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([seed, zlib.crc32(name.encode())]))
 
 
+def drone_start_positions(scenario: Scenario, target_positions: np.ndarray) -> np.ndarray:
+    """Every drone's start ``(M, 2)`` m: its ``start`` when the scenario gives one, else above
+    the centre of the box around its targets' positions ``target_positions`` ``(N, 2)`` m
+    (row j is target ``scenario.target_ids[j]``)."""
+    column = {t: j for j, t in enumerate(scenario.target_ids)}
+    starts = []
+    for d in scenario.drones:
+        if d.start is not None:
+            starts.append(d.start)
+            continue
+        pts = target_positions[[column[i] for i in d.targets]]
+        starts.append(0.5 * (pts.min(axis=0) + pts.max(axis=0)))
+    return np.array(starts, dtype=float)
+
+
 class World:
     """Simulated farm with ground vehicles and drones.
 
@@ -42,18 +57,8 @@ class World:
         self.t = 0.0
         self.steps = 0
         self.targets = TargetFleet(scenario, stream_rng(seed, "targets"))
-        self.drones = DroneTeam(scenario, self._start_positions(), stream_rng(seed, "odometry"))
-
-    def _start_positions(self) -> np.ndarray:
-        column = {int(i): j for j, i in enumerate(self.targets.ids)}
-        starts = []
-        for d in self.scenario.drones:
-            if d.start is not None:
-                starts.append(d.start)
-                continue
-            pts = self.targets.position[[column[i] for i in d.targets]]
-            starts.append(0.5 * (pts.min(axis=0) + pts.max(axis=0)))
-        return np.array(starts, dtype=float)
+        starts = drone_start_positions(scenario, self.targets.position)
+        self.drones = DroneTeam(scenario, starts, stream_rng(seed, "odometry"))
 
     def rng(self, name: str) -> np.random.Generator:
         """A generator for a named consumer of randomness in this run (e.g. ``'detector'``)."""

@@ -1,8 +1,11 @@
 """Communication figures by hand: the centralized JPEG uplink and DroneFL's bytes."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
+from dronefl.accounting import ByteCounter
 from dronefl.bench.bandwidth import ODOMETRY_BYTES, centralized_uplink, dronefl_comm
 from dronefl.bench.vision import Frame
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
@@ -31,20 +34,18 @@ def test_centralized_uplink_is_message_bytes_times_rate_per_drone():
     assert uplink["kb_per_s"] == uplink["per_environment"]["orchard"]["kb_per_s"]
 
 
-def _metrics(rounds: int) -> dict:
+def _metrics(rounds: int) -> SimpleNamespace:
     # Two drones over 600 s; each round moves 60 kB down and 60 kB up per drone.
-    weights = 60.0 * rounds / 600.0
-    drone = {"up:predictions": 0.2, "down:control": 0.07, "up:weights": weights,
-             "down:weights": weights}  # fmt: skip
-    drone["total"] = sum(drone.values())
-    return {
-        "sim_seconds": 600.0,
-        "fl_rounds": [{}] * rounds,
-        "communication_kb_per_s": {
-            "mean_per_drone": drone["total"],
-            "drones": {"1": dict(drone), "2": dict(drone)},
-        },
-    }
+    counter = ByteCounter()
+    for drone in (1, 2):
+        counter.add(drone, "up", "predictions", 120_000)  # 0.2 KB/s
+        counter.add(drone, "down", "control", 42_000)  # 0.07 KB/s
+        if rounds:
+            counter.add(drone, "up", "weights", 60_000 * rounds)
+            counter.add(drone, "down", "weights", 60_000 * rounds)
+    return SimpleNamespace(
+        sim_seconds=600.0, fl_rounds=[None] * rounds, communication=counter.rates(600.0)
+    )
 
 
 def test_dronefl_comm_rescales_the_rounds_to_one_per_period():

@@ -35,12 +35,13 @@ def test_filterpy_reference_is_our_fusion_without_adaptation_or_gating():
 
 def test_cloud_needs_more_steps_than_its_warmup():
     with pytest.raises(ValueError, match="steps"):
-        bench_cloud(steps=5)
+        bench_cloud(load_scenario("case3"), steps=5)
 
 
 @pytest.fixture(scope="module")
 def recorded(tmp_path_factory):
-    return record_windows(tmp_path_factory.mktemp("record"), duration=20.0, per_target=5)
+    folder = tmp_path_factory.mktemp("record")
+    return record_windows(load_scenario("case3"), folder, duration=20.0, per_target=5)
 
 
 def test_recorded_windows_and_step_have_drone_1s_six_targets(recorded):
@@ -80,11 +81,12 @@ def test_training_figures_with_the_stock_reference(recorded):
 
 
 def test_detector_on_rendered_case3_frames():
-    frames = render_frames("crop_field", count=4, duration=2.0)
+    scenario = load_scenario("case3")
+    frames = render_frames(scenario, "crop_field", count=4, duration=2.0)
 
     assert [f.drone_id for f in frames] == [1, 2, 3, 4]
     assert {f.image.shape for f in frames} == {(640, 640, 3)}
-    figures = bench_detector({"crop_field": frames})
+    figures = bench_detector({"crop_field": frames}, scenario.target_ids)
     _positive(figures["detector"])
     _positive(figures["render"])
     assert figures["detector"]["samples"] == 4 and figures["detector"]["threads"] == 1
@@ -92,5 +94,6 @@ def test_detector_on_rendered_case3_frames():
 
 
 def test_simulator_reports_each_environment_and_the_slowest():
-    figure = bench_simulator(duration=2.0, environments=("crop_field", "orchard"))["simulator"]
+    scenario = load_scenario("case3")
+    figure = bench_simulator(scenario, 2.0, ("crop_field", "orchard"))["simulator"]
     assert figure["min"] == min(figure["per_environment"].values()) > 0

@@ -9,6 +9,7 @@ import pytest
 from dronefl.config import load_scenario
 from dronefl.experiments.simulate import simulate
 from dronefl.logs import GroundTruth, LogError, OnboardLog, load_run
+from dronefl.results import to_json
 
 
 @pytest.fixture(scope="module")
@@ -34,7 +35,7 @@ def test_run_folder_has_logs_truth_summary_and_plot(recorded):
     assert on_disk["sim_seconds"] == pytest.approx(30.0)
     assert on_disk["wall_seconds"] > 0
     assert [d["drone_id"] for d in on_disk["drones"]] == [1, 2, 3]
-    assert on_disk == json.loads(json.dumps(summary))
+    assert on_disk == to_json(summary)
 
 
 def test_logs_hold_boxes_and_odometry_never_images(recorded):
@@ -48,9 +49,7 @@ def test_logs_hold_boxes_and_odometry_never_images(recorded):
     assert ((log.boxes[log.detected] >= 0) & (log.boxes[log.detected] <= 1)).all()
     assert truth.target_position.shape == (150, 3, 2)
     # The summary's detection rate is the detection mask's mean over the assigned targets.
-    assert summary["drones"][1]["detection_rate"] == pytest.approx(
-        log.detected[:, log.assigned].mean()
-    )
+    assert summary.drones[1].detection_rate == pytest.approx(log.detected[:, log.assigned].mean())
 
 
 def test_odometry_in_the_log_is_the_drone_truth_plus_small_noise(recorded):

@@ -4,18 +4,15 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from dronefl.config import load_scenario
-from dronefl.experiments.pretrain import pretrain_settings
-from dronefl.experiments.simulate import simulate
-from dronefl.experiments.track import EpisodeLog, TrackConfig, episode_metrics, run_episode
+from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
+from dronefl.experiments.pretrain import PretrainSpec
+from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
-from dronefl.logs import LogError, PseudoLabels, load_run
+from dronefl.logs import LogError, PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
-from dronefl.models.train import TrainConfig, train_local
-from dronefl.models.windows import WindowSet, WindowSpec, build_windows, ground_truth_labels
 from dronefl.types import Detection, Odometry
 
 
@@ -35,15 +32,15 @@ def test_episode_metrics_by_hand():
     log.prediction[0, 0, 0] = [1, 1]  # truth at k+1 = (1, 0): squared error 1
     log.prediction[1, 1, 1] = [12, 3]  # truth (12, 0): squared error 9
     log.prediction[1, 0, 1] = [0, 0]  # drone 1 does not watch target 2: ignored
-    metrics = episode_metrics(log, scenario)
-    assert metrics["prediction_error"] == pytest.approx(5.0)
-    assert metrics["prediction_coverage"] == pytest.approx(2 / 4)
+    metrics = tracking_metrics(log, scenario)
+    assert metrics.prediction_error == pytest.approx(5.0)
+    assert metrics.prediction_coverage == pytest.approx(2 / 4)
     # Squared distances at steps 0 and 1: drone 1: 9, 10; drone 2: 16, 17.
-    assert metrics["tracking_distance"] == pytest.approx((9 + 10 + 16 + 17) / 4)
-    assert metrics["uncertainty"] == pytest.approx(2.0)
+    assert metrics.tracking_distance == pytest.approx((9 + 10 + 16 + 17) / 4)
+    assert metrics.uncertainty == pytest.approx(2.0)
     # |v1 - v0| per drone over steps 0 -> 1: drone 1 moved 0 -> 1 m/s, drone 2 stayed.
-    assert metrics["speed_change"] == pytest.approx(0.5)
-    assert metrics["total_cost"] == pytest.approx(15.0)
+    assert metrics.speed_change == pytest.approx(0.5)
+    assert metrics.total_cost == pytest.approx(15.0)
 
 
 def test_onboard_record_windows_and_log():
@@ -76,69 +73,40 @@ def test_pseudo_labels_round_trip_and_alignment(tmp_path):
         shifted.for_log(record.to_log())
 
 
-@pytest.fixture(scope="module")
-def quick_pretrained(tmp_path_factory):
-    """A DroneFL model trained for a few seconds on 120 s of crop field, cached where the
-    closed loop looks for pretrained weights."""
-    folder = tmp_path_factory.mktemp("pretrained")
-    data = folder / "data"
-    simulate(
-        load_scenario("case1"),
-        environment="crop_field",
-        duration=120.0,
-        seed=5,
-        out=data,
-        progress=False,
-        plot=False,
-    )
-    logs, truth = load_run(data)
-    spec = WindowSpec(10, 1, relative=True, stride=1)
-    windows = WindowSet.concat(
-        [build_windows(log, ground_truth_labels(log, truth), spec) for log in logs.values()]
-    )
-    model = build_model(predictor_config("dronefl", 10, 1), seed=0)
-    torch.set_num_threads(1)
-    train_local(model, windows, TrainConfig(epochs=15, seed=0))
-    settings = pretrain_settings(1, "dronefl", folder)
-    save_checkpoint(
-        settings.checkpoint_path,
-        settings.history_path,
-        Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
-    )
-    return folder
-
-
-def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, tmp_path):
+def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained_case1, tmp_path):
     config = TrackConfig(
-        case=1,
+        scenario=load_scenario("case1"),
         method="fixed",
         seed=3,
         duration=40.0,
         environment="crop_field",
         runtime="torch",
-        pretrained=quick_pretrained,
+        pretrained=quick_pretrained_case1,
         out=tmp_path,
         progress=False,
     )
     metrics = run_episode(config)
     # Every prediction the drones made and every fused track stay within a few metres.
-    assert metrics["prediction_coverage"] > 0.9
-    assert metrics["prediction_error"] < 4.0
-    assert metrics["tracking_error"] < 4.0
+    tracking = metrics.tracking
+    assert tracking.prediction_coverage > 0.9
+    assert tracking.prediction_error < 4.0
+    assert tracking.tracking_error < 4.0
     # Each drone stays over its target: well inside a 9 m half-footprint (drone 2 at 20 m).
-    assert metrics["tracking_distance"] < 30.0
-    assert metrics["fl_rounds"] == []
+    assert tracking.tracking_distance < 30.0
+    assert metrics.fl_rounds == ()
+    assert EpisodeMetrics.load(tmp_path / "metrics.json") == metrics
     saved = json.loads((tmp_path / "metrics.json").read_text())
-    assert saved["prediction_error"] == pytest.approx(metrics["prediction_error"])
+    assert saved["tracking"]["prediction_error"] == metrics.tracking.prediction_error
+    assert saved["scenario"] == "case1" and saved["method"] == "fixed"
     for name in ("trajectories.png", "timeseries.png", "episode.npz"):
         assert (tmp_path / name).stat().st_size > 0
     again = run_episode(config)
-    assert again["prediction_error"] == metrics["prediction_error"]
+    assert again.tracking == metrics.tracking
 
 
-def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, tmp_path):
+def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained_case1, tmp_path):
     # Prepare: an (untrained) large cloud model in the cache; accuracy is not under test.
-    settings = pretrain_settings(1, "centralized", quick_pretrained)
+    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(quick_pretrained_case1)
     if not settings.checkpoint_path.is_file():
         model = build_model(predictor_config("large", 10, 1), seed=0)
         save_checkpoint(
@@ -146,17 +114,20 @@ def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, 
             settings.history_path,
             Checkpoint("centralized", settings.rounds, model.state_dict(), []),
         )
-    config = TrackConfig(case=1, method="centralized", detector="yolo", seed=0, duration=2.0,
-                         environment="crop_field", runtime="torch", pretrained=quick_pretrained,
-                         out=tmp_path, progress=False, animate=False)  # fmt: skip
+    config = TrackConfig(
+        scenario=load_scenario("case1"), method="centralized", detector="yolo", seed=0,
+        duration=2.0, environment="crop_field", runtime="torch", pretrained=quick_pretrained_case1,
+        out=tmp_path, progress=False, animate=False,
+    )  # fmt: skip
     # Execute: 10 steps, every drone's frame rendered, JPEG-encoded, decoded and detected.
     metrics = run_episode(config)
     # Assert: per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry; no
     # predictions travel (the cloud predicts), the controls come down.
-    assert "JPEG" in metrics["centralized_inputs"]
-    for rates in metrics["communication_kb_per_s"]["drones"].values():
-        assert 20 * 5 < rates["up:frames"] < 200 * 5  # KB/s at 5 Hz
-        assert rates["up:odometry"] == pytest.approx(53 * 5 / 1000)
-        assert rates["down:control"] == pytest.approx(14 * 5 / 1000)
-        assert "up:predictions" not in rates
-    assert metrics["prediction_coverage"] > 0.0
+    assert "JPEG" in metrics.centralized_inputs
+    comm = metrics.communication
+    for drone in (1, 2):
+        assert 20 * 5 < comm.kb_per_s(drone, "up", "frames") < 200 * 5  # KB/s at 5 Hz
+        assert comm.kb_per_s(drone, "up", "odometry") == pytest.approx(53 * 5 / 1000)
+        assert comm.kb_per_s(drone, "down", "control") == pytest.approx(14 * 5 / 1000)
+    assert ("up", "predictions") not in comm.kinds()
+    assert metrics.tracking.prediction_coverage > 0.0

@@ -16,7 +16,7 @@ from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 from dronefl.types import CameraView, TargetState
 
-CAMERA = PinholeCamera()  # 1280 x 720, 80 deg HFOV
+CAMERA = PinholeCamera.from_spec()  # 1280 x 720, 80 deg HFOV
 VEHICLE = VehicleSpec()  # 4 x 2 x 1.5 m
 EXACT = ProjectionNoise(center_px=0.0, size_frac=0.0, miss_base=0.0, miss_per_m=0.0)
 

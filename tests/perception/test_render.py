@@ -10,7 +10,7 @@ from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 from dronefl.types import TargetState
 
-CAMERA = PinholeCamera()
+CAMERA = PinholeCamera.from_spec()
 VEHICLE = VehicleSpec()
 
 

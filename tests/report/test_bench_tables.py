@@ -3,7 +3,8 @@
 import pytest
 
 from dronefl.bench.energy import RPI5_INFERENCE, RPI5_TRAINING
-from dronefl.bench.report import (
+from dronefl.bench.timing import latency, with_reference
+from dronefl.report.bench import (
     GOALS,
     energy_estimates,
     evaluate_goals,
@@ -12,7 +13,6 @@ from dronefl.bench.report import (
     summary_line,
     table2,
 )
-from dronefl.bench.timing import latency, with_reference
 
 
 def _figures() -> dict:

@@ -1,0 +1,169 @@
+"""What a closed-loop episode records and what it reports (paper Table I, SPEC §8).
+
+* :class:`EpisodeLog`: the per-step arrays (truth, predictions, fused tracks, Tr P, cost),
+  saved as ``episode.npz``;
+* :class:`TrackingMetrics`: Table I's metrics computed from a log by :func:`tracking_metrics`;
+* :class:`EpisodeMetrics`: everything ``metrics.json`` holds: what ran, the tracking metrics,
+  the FL rounds (:class:`ClosedLoopRound`), the traffic and the timing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dronefl.accounting import Communication
+from dronefl.config import Scenario
+from dronefl.io import atomic_savez
+from dronefl.results import load_result, save_result
+
+
+@dataclass
+class EpisodeLog:
+    """Per-step arrays of an episode (index k is time ``k dt``); column j is target
+    ``scenario.target_ids[j]``, row i drone ``scenario.drone_ids[i]``."""
+
+    t: np.ndarray  # (K+1,) s
+    target_position: np.ndarray  # (K+1, N, 2) true, m
+    drone_position: np.ndarray  # (K+1, M, 2) true, m
+    drone_velocity: np.ndarray  # (K+1, M, 2) true, m/s
+    prediction: np.ndarray  # (K, M, N, 2) drone i's prediction at k of target j at k+1, m
+    track_position: np.ndarray  # (K+1, N, 2) fused estimate of time k, m (NaN: no track)
+    trace: np.ndarray  # (K, N) Tr P after the update at k, m^2 (+ (m/s)^2)
+    cost: np.ndarray  # (K,) planner cost J
+    fl_steps: list[int] = field(default_factory=list)
+
+    @classmethod
+    def empty(cls, scenario: Scenario, n_steps: int) -> EpisodeLog:
+        """A log for ``n_steps`` steps of ``scenario``, predictions and tracks NaN."""
+        m, n = len(scenario.drones), len(scenario.targets)
+        return cls(
+            t=np.arange(n_steps + 1) * scenario.dt,
+            target_position=np.zeros((n_steps + 1, n, 2)),
+            drone_position=np.zeros((n_steps + 1, m, 2)),
+            drone_velocity=np.zeros((n_steps + 1, m, 2)),
+            prediction=np.full((n_steps, m, n, 2), np.nan),
+            track_position=np.full((n_steps + 1, n, 2), np.nan),
+            trace=np.full((n_steps, n), np.nan),
+            cost=np.zeros(n_steps),
+        )
+
+    def save(self, path: Path) -> Path:
+        """Write the log as ``.npz`` (atomically)."""
+        arrays = {k: v for k, v in asdict(self).items() if isinstance(v, np.ndarray)}
+        return atomic_savez(path, fl_steps=np.array(self.fl_steps, dtype=np.int64), **arrays)
+
+
+@dataclass(frozen=True)
+class TrackingMetrics:
+    """Table I's metrics of an episode.
+
+    * ``prediction_error`` (m^2): mean ``||z_hat^i_{j,k+1} - z_{j,k+1}||^2`` over every
+      prediction a drone made of an assigned target;
+    * ``tracking_distance`` (m^2): mean squared horizontal distance drone to assigned target;
+    * ``uncertainty``: mean ``Tr P`` over tracked targets and steps;
+    * ``speed_change`` (m/s): mean ``||v_k - v_{k-1}||`` over drones and steps;
+    * ``total_cost``: mean planner cost ``J`` per step;
+    * ``prediction_coverage``: fraction of (step, drone, assigned target) with a prediction;
+    * ``tracking_error`` (m^2): mean squared error of the fused tracks.
+    """
+
+    prediction_error: float
+    tracking_distance: float
+    uncertainty: float
+    speed_change: float
+    total_cost: float
+    prediction_coverage: float
+    tracking_error: float
+
+
+def tracking_metrics(log: EpisodeLog, scenario: Scenario) -> TrackingMetrics:
+    """Table I's metrics of ``log`` (see :class:`TrackingMetrics`)."""
+    column = {t: j for j, t in enumerate(scenario.target_ids)}
+    pred_err, track_dist, coverage = [], [], []
+    for i, drone in enumerate(scenario.drones):
+        for target_id in drone.targets:
+            j = column[target_id]
+            predicted = log.prediction[:, i, j]  # (K, 2)
+            truth_next = log.target_position[1:, j]  # (K, 2)
+            ok = np.isfinite(predicted).all(axis=1)
+            pred_err.append(((predicted[ok] - truth_next[ok]) ** 2).sum(axis=1))
+            coverage.append(ok)
+            gap = log.drone_position[:-1, i] - log.target_position[:-1, j]
+            track_dist.append((gap**2).sum(axis=1))
+    errors = np.concatenate(pred_err)
+    speed_change = np.linalg.norm(np.diff(log.drone_velocity[:-1], axis=0), axis=-1)
+    return TrackingMetrics(
+        prediction_error=float(errors.mean()) if errors.size else float("nan"),
+        tracking_distance=float(np.concatenate(track_dist).mean()),
+        uncertainty=float(np.nanmean(log.trace)),
+        speed_change=float(speed_change.mean()),
+        total_cost=float(log.cost.mean()),
+        prediction_coverage=float(np.concatenate(coverage).mean()),
+        tracking_error=float(
+            np.nanmean(((log.track_position - log.target_position) ** 2).sum(axis=-1))
+        ),
+    )
+
+
+@dataclass(frozen=True)
+class ClosedLoopRound:
+    """One model update of the closed loop: played at simulated time ``t`` (s), taking
+    ``seconds`` of wall time; ``train_loss`` per drone (``0`` = the cloud) in m^2 (scaled
+    MSE of the training windows); ``rejected`` the drones whose update was left out and why;
+    ``weight_bytes`` per drone, down and up."""
+
+    round: int
+    t: float
+    seconds: float
+    train_loss: dict[int, float]
+    rejected: tuple[str, ...] = ()
+    weight_bytes_down: dict[int, int] = field(default_factory=dict)
+    weight_bytes_up: dict[int, int] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class EpisodeMetrics:
+    """Everything ``metrics.json`` holds about one closed-loop episode.
+
+    ``scenario`` is its name and ``scenario_hash`` the content hash of the scenario that ran;
+    ``tracking`` Table I's metrics; ``sim_seconds`` / ``wall_seconds`` / ``fl_seconds`` in s;
+    ``planner_ms_per_step`` in ms; ``gating_rejections`` and ``track_resets`` counts of the
+    fusion; ``centralized_inputs`` says in words what the centralized baseline's drones sent
+    (``None`` for the other methods); ``config`` the episode's settings as given.
+    """
+
+    scenario: str
+    scenario_hash: str
+    method: str
+    seed: int
+    environment: str
+    detector: str
+    labels: str
+    tracking: TrackingMetrics
+    fl_rounds: tuple[ClosedLoopRound, ...]
+    communication: Communication
+    sim_seconds: float
+    wall_seconds: float
+    fl_seconds: float
+    planner_ms_per_step: float
+    gating_rejections: int
+    track_resets: int
+    centralized_inputs: str | None
+    config: dict[str, str | int | float | bool]
+
+    @property
+    def realtime_factor(self) -> float:
+        """Simulated seconds per wall second."""
+        return self.sim_seconds / self.wall_seconds
+
+    def save(self, path: Path) -> Path:
+        """Write ``metrics.json`` atomically."""
+        return save_result(path, self)
+
+    @classmethod
+    def load(cls, path: Path) -> EpisodeMetrics:
+        """Read a ``metrics.json``; a corrupt or foreign file raises naming the file."""
+        return load_result(cls, path)

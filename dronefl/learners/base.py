@@ -1,0 +1,80 @@
+"""How a closed-loop method's models learn during an episode (paper Sec. IV-D, Table I).
+
+A :class:`Learner` is given every drone's onboard record and the training labels for the steps
+recorded so far, every ``fl_period`` s, and returns the new weights of the predictor the episode
+runs (:class:`ModelUpdate`), or ``None`` when the method never updates its models. Class
+attributes say what the episode must provide:
+
+* ``model_kind``: which pretrained model the method starts from (``dronefl``: the small
+  position-invariant model on every drone; ``centralized``: the large model in the cloud);
+* ``federated``: whether its updates are Flower rounds (the episode then runs inside one Flower
+  session and hands the learner the session's round driver);
+* ``cloud_predicts``: whether the drones send their raw inputs and the cloud predicts (the
+  centralized baseline) instead of each drone predicting on board.
+
+Adding a method is one subclass here and one line in :data:`dronefl.learners.LEARNERS`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, ClassVar
+
+import numpy as np
+import torch
+
+from dronefl.models.online import OnboardRecord
+
+if TYPE_CHECKING:
+    from dronefl.fl.server_app import RoundDriver
+
+
+@dataclass(frozen=True)
+class LearnerSetup:
+    """What a learner is built from: the episode folder ``out``, the pretrained weights
+    ``state``, the windows (``past_steps`` L_p, ``stride`` samples between windows; L_f = 1),
+    ``epochs`` per update, ``seed``, ``weights_dtype`` on the wire, and for a federated
+    learner the episode's Flower round ``driver``."""
+
+    out: Path
+    state: dict[str, torch.Tensor]
+    past_steps: int
+    stride: int
+    epochs: int
+    seed: int
+    weights_dtype: str = "float32"
+    driver: RoundDriver | None = None
+
+
+@dataclass(frozen=True)
+class ModelUpdate:
+    """The result of one update: the new weights, the training loss per drone (``0`` for the
+    cloud; scaled MSE), the drones whose update was left out (``"<id>: <reason>"``) and the
+    model bytes each drone received (``down``) and sent (``up``)."""
+
+    state: dict[str, torch.Tensor]
+    train_loss: dict[int, float]
+    rejected: tuple[str, ...] = ()
+    weight_bytes_down: dict[int, int] = field(default_factory=dict)
+    weight_bytes_up: dict[int, int] = field(default_factory=dict)
+
+
+class Learner(ABC):
+    """Updates the episode's predictor from the data recorded so far."""
+
+    model_kind: ClassVar[str] = "dronefl"
+    federated: ClassVar[bool] = False
+    cloud_predicts: ClassVar[bool] = False
+
+    def __init__(self, setup: LearnerSetup) -> None:
+        self.setup = setup
+
+    @abstractmethod
+    def update(
+        self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
+    ) -> ModelUpdate | None:
+        """Learn from ``records`` labelled by ``labels`` ``(steps, N, 2)`` m (column j is
+        target ``records[0].target_ids[j]``; NaN where there is no label) in update number
+        ``server_round`` (1, 2, ...); ``None`` if the method does not update its models."""

@@ -1,0 +1,39 @@
+"""The centralized baseline's online learning: the cloud retrains its large model on the
+pooled data of every drone (paper Table I)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
+from dronefl.logs import PseudoLabels
+from dronefl.models.model import build_model, predictor_config
+from dronefl.models.online import OnboardRecord
+from dronefl.models.train import TrainConfig, train_pooled
+from dronefl.models.windows import WindowSpec, build_windows
+
+
+class CentralizedLearner(Learner):
+    """The large model, trained in the cloud for E epochs on every drone's windows pooled."""
+
+    model_kind = "centralized"
+    cloud_predicts = True
+
+    def __init__(self, setup: LearnerSetup) -> None:
+        super().__init__(setup)
+        self.model = build_model(predictor_config("large", setup.past_steps, 1))
+        self.model.load_state_dict(setup.state)
+
+    def update(
+        self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
+    ) -> ModelUpdate:
+        setup = self.setup
+        spec = WindowSpec(setup.past_steps, 1, relative=True, stride=setup.stride)
+        windows = []
+        for record in records:
+            log = record.to_log()
+            pseudo = PseudoLabels(log.t, record.target_ids, labels[: len(log.t)])
+            windows.append(build_windows(log, pseudo.for_log(log), spec))
+        seed = setup.seed * 1_000_003 + server_round
+        stats = train_pooled(self.model, windows, TrainConfig(setup.epochs, 1e-3, 128, seed))
+        return ModelUpdate(self.model.state_dict(), {0: stats.loss})

@@ -1,0 +1,85 @@
+"""DroneFL's online learning: one Flower round per update (paper Sec. IV-D).
+
+The cloud writes every drone's onboard log so far and the labels to ``<out>/fl/round_<k>/``
+(the drones read the folder the round's config names; in a deployment each drone reads its own
+disk), and plays one round through the episode's Flower session, continuing from the current
+global model; the global checkpoint goes to ``<out>/fl/global/``.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from dronefl.fl.records import FlSettings
+from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
+from dronefl.logs import PseudoLabels
+from dronefl.models.online import OnboardRecord
+
+
+def session_settings(setup: LearnerSetup) -> FlSettings:
+    """The Flower settings of an episode's online rounds: the DroneFL model, L_f = 1, every
+    recorded window trained on (no test split, no federated evaluation)."""
+    return FlSettings(
+        run_dir=str(setup.out / "fl" / "round_01"),
+        out_dir=str(setup.out / "fl" / "global"),
+        method="dronefl",
+        past_steps=setup.past_steps,
+        future_steps=1,
+        stride=setup.stride,
+        epochs=setup.epochs,
+        seed=setup.seed,
+        labels="tracks",
+        weights_dtype=setup.weights_dtype,
+        train_fraction=1.0,
+    )
+
+
+class FederatedLearner(Learner):
+    """FedAvg of the position-invariant AdaIN model through Flower, one round per update."""
+
+    federated = True
+
+    def __init__(self, setup: LearnerSetup) -> None:
+        super().__init__(setup)
+        if setup.driver is None:
+            raise ValueError("the dronefl method needs the episode's Flower round driver")
+        self.driver = setup.driver
+        self.folder = setup.out / "fl"
+        shutil.rmtree(self.folder, ignore_errors=True)
+        self.state = setup.state
+
+    def update(
+        self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
+    ) -> ModelUpdate:
+        data = self.folder / f"round_{server_round:02d}"
+        write_round_data(data, records, labels)
+        self.state = self.driver.play(self.state, server_round, run_dir=str(data))
+        entry = self.driver.history[-1]
+        if entry["round"] != server_round:
+            raise RuntimeError(f"federated round {server_round} did not finish")
+        # Every drone receives and returns a model of the same size, so the round's train
+        # messages split evenly (the diagnostic evaluate messages are not part of the method).
+        traffic = entry.get("bytes", {})
+        share = {
+            way: traffic.get(way, {}).get("train", 0) // len(records) for way in ("down", "up")
+        }
+        drones = [r.drone_id for r in records]
+        return ModelUpdate(
+            state=self.state,
+            train_loss={int(d): float(v) for d, v in (entry.get("train_loss") or {}).items()},
+            rejected=tuple(str(r) for r in entry.get("rejected") or ()),
+            weight_bytes_down={d: share["down"] for d in drones},
+            weight_bytes_up={d: share["up"] for d in drones},
+        )
+
+
+def write_round_data(folder: Path, records: list[OnboardRecord], labels: np.ndarray) -> None:
+    """Every drone's onboard log (``drone_<id>.npz``) and the labels (``tracks.npz``)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for record in records:
+        record.to_log().save(folder / f"drone_{record.drone_id}.npz")
+    t = records[0].t[: records[0].steps]
+    PseudoLabels(t, records[0].target_ids, labels[: len(t)]).save(folder / "tracks.npz")

@@ -1,0 +1,90 @@
+"""Any scenario through every closed-loop experiment: a custom 5-drone, 8-target scenario in a
+200 x 150 m field (mixed constant-speed and random-walk vehicles) is simulated, pretrained from
+an empty cache, flown by all three methods and tabulated; Table I reuses finished episodes."""
+
+import json
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from dronefl.cli import app
+from dronefl.config import load_scenario
+from dronefl.experiments.episode import EpisodeMetrics
+from dronefl.experiments.table1 import run_table1
+from dronefl.experiments.track import TRACK_METHODS, TrackConfig
+
+SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
+#: Short settings: 30 s of crop field and 2 FL rounds to pretrain, 24 s episodes with an FL
+#: round every 10 s.
+SHORT = ["--pretrain-rounds", "2", "--pretrain-seconds", "30", "--duration", "24",
+         "--fl-period", "10"]  # fmt: skip
+
+
+def _invoke(*args: str) -> str:
+    result = CliRunner().invoke(app, list(args), catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return result.output
+
+
+def test_simulate_records_every_drone_of_the_custom_scenario(tmp_path):
+    _invoke("simulate", "--scenario", str(SCENARIO), "--duration", "10", "--out", str(tmp_path))
+
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert sorted(p.name for p in tmp_path.glob("drone_*.npz")) == [
+        f"drone_{i}.npz" for i in range(1, 6)
+    ]
+    assert summary["sim_seconds"] == pytest.approx(10.0)
+
+
+@pytest.fixture(scope="module")
+def table_dir(tmp_path_factory):
+    """Every method flown once (seed 0) from an empty pretrained cache, in Table I's layout."""
+    root = tmp_path_factory.mktemp("any_scenario")
+    pretrained = root / "pretrained"
+    for method in TRACK_METHODS:
+        out = root / "table" / "farm_5x8" / method / "seed0"
+        _invoke("track", "--scenario", str(SCENARIO), "--method", method, *SHORT,
+                "--env", "orchard", "--pretrained", str(pretrained), "--out", str(out))  # fmt: skip
+    return root
+
+
+@pytest.mark.parametrize("method", TRACK_METHODS)
+def test_every_method_flies_the_custom_scenario(table_dir, method):
+    metrics = EpisodeMetrics.load(
+        table_dir / "table" / "farm_5x8" / method / "seed0" / "metrics.json"
+    )
+
+    assert metrics.scenario == "farm_5x8" and metrics.method == method
+    assert metrics.communication.drone_ids == (1, 2, 3, 4, 5)
+    assert metrics.tracking.prediction_coverage > 0.5
+    # The learners update at 10 s and 20 s; the fixed models never do.
+    assert len(metrics.fl_rounds) == (0 if method == "fixed" else 2)
+    if method == "dronefl":
+        assert metrics.communication.kb_per_s(kind="weights") > 0
+        assert all(set(r.train_loss) == {1, 2, 3, 4, 5} for r in metrics.fl_rounds)
+
+
+def test_pretraining_filled_the_empty_cache_once_per_kind(table_dir):
+    folder = table_dir / "pretrained" / "farm_5x8"
+    kinds = sorted(p.name.split("-")[0] for p in folder.iterdir() if not p.name.startswith("data"))
+    assert kinds == ["centralized", "dronefl"]
+    assert len(list(folder.glob("data-*"))) == 1  # one recording shared by both
+
+
+def test_table1_reuses_the_finished_episodes(table_dir):
+    out = table_dir / "table"
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")}
+    base = TrackConfig(
+        scenario=load_scenario(SCENARIO), out=out, duration=24.0, fl_period=10.0,
+        pretrained=table_dir / "pretrained", pretrain_rounds=2, pretrain_seconds=30.0,
+    )  # fmt: skip
+
+    episodes = run_table1(base, (base.scenario,), TRACK_METHODS, seeds=(0,))
+
+    assert [e.method for e in episodes] == list(TRACK_METHODS)
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")} == before
+    table = (out / "table1.md").read_text()
+    for method in TRACK_METHODS:
+        assert f"| farm_5x8 | {method} (n=1) |" in table
+    assert (out / "table1.png").stat().st_size > 10_000

@@ -1,0 +1,100 @@
+"""Pretraining: a cache keyed by content, run outside any FL session, and a failure inside
+Flower that ends the command quickly, in one line, with no Ray process left behind."""
+
+import os
+import subprocess
+import sys
+import time
+import uuid
+from dataclasses import replace
+from pathlib import Path
+
+from dronefl.config import load_scenario, parse_scenario
+from dronefl.experiments.pretrain import PretrainSpec
+from dronefl.experiments.simulate import simulate
+
+SCENARIO = load_scenario("case1")
+
+
+def test_editing_the_scenario_changes_the_cache_key(tmp_path):
+    spec = PretrainSpec(SCENARIO, "dronefl")
+    raw = {
+        "name": "case1",
+        "targets": [{"id": 1, "lane": 2, "start_x": 30.0}, {"id": 2, "lane": 20, "start_x": 130.0}],
+        "drones": [{"id": 1, "altitude": 30.0, "targets": [1]},
+                   {"id": 2, "altitude": 20.0, "targets": [2]}],
+    }  # fmt: skip
+    edited = replace(spec, scenario=parse_scenario(raw))
+    faster = replace(spec, scenario=parse_scenario(_with_speed(raw, 0.6)))
+
+    paths = {s.settings(tmp_path).checkpoint_path for s in (spec, edited, faster)}
+    assert len(paths) == 3  # same name, three contents, three cache entries
+    assert spec.settings(tmp_path).checkpoint_path == spec.settings(tmp_path).checkpoint_path
+
+
+def test_every_training_setting_is_in_the_cache_key(tmp_path):
+    spec = PretrainSpec(SCENARIO, "dronefl")
+    variants = [
+        spec,
+        replace(spec, past_steps=8),
+        replace(spec, stride=3),
+        replace(spec, rounds=5),
+        replace(spec, duration=300.0),
+        replace(spec, recording_seed=7),
+        replace(spec, kind="centralized"),
+    ]
+    assert len({v.settings(tmp_path).out_dir for v in variants}) == len(variants)
+    # The recording is shared by the two kinds and by every training setting.
+    assert {v.settings(tmp_path).run_dir for v in variants[:4] + variants[6:]} == {
+        spec.settings(tmp_path).run_dir
+    }
+
+
+def _with_speed(raw: dict, speed: float) -> dict:
+    return {**raw, "targets": [{**t, "speed": speed} for t in raw["targets"]]}
+
+
+def _processes_tagged(tag: str) -> list[int]:
+    """PIDs of live processes whose environment holds ``tag`` (the command's whole tree:
+    Ray's workers inherit the environment)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            if tag.encode() in (entry / "environ").read_bytes():
+                found.append(int(entry.name))
+        except OSError:
+            continue
+    return found
+
+
+def test_a_client_app_failing_in_pretraining_ends_the_command(tmp_path):
+    # Prepare: the crop-field recording pretraining would make, with every drone's log corrupt,
+    # so that each ClientApp raises inside the Flower simulation.
+    spec = PretrainSpec(SCENARIO, "dronefl", rounds=2, duration=10.0)
+    data = Path(spec.settings(tmp_path).run_dir)
+    simulate(SCENARIO, environment="crop_field", duration=10.0, seed=spec.recording_seed,
+             out=data, progress=False, plot=False)  # fmt: skip
+    for log in data.glob("drone_*.npz"):
+        log.write_bytes(b"not a log")
+    tag = f"DRONEFL_TEST_{uuid.uuid4().hex}"
+    env = {**os.environ, tag: "1", "FLWR_TELEMETRY_ENABLED": "0", "MPLBACKEND": "Agg"}
+    command = [sys.executable, "-m", "dronefl.cli", "pretrain", "--scenario", "case1",
+               "--rounds", "2", "--duration", "10", "--out", str(tmp_path)]  # fmt: skip
+
+    # Execute
+    started = time.monotonic()
+    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=120)
+    seconds = time.monotonic() - started
+
+    # Assert: non-zero exit within 60 s, one line naming what failed, nothing left running.
+    assert result.returncode != 0
+    assert seconds < 60, f"took {seconds:.0f} s"
+    last = result.stderr.strip().splitlines()[-1]
+    assert last.startswith("error: ") and "corrupt log file" in last, last
+    assert str(data / "drone_") in last  # it names the file the ClientApp could not read
+    deadline = time.monotonic() + 10
+    while _processes_tagged(tag) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    assert _processes_tagged(tag) == []
