@@ -746,8 +746,7 @@ def deploy_up(
         )
         metrics = run_deploy(config)
     typer.echo(format_metrics(metrics))
-    rounds = len(metrics["fl_rounds"])
-    typer.echo(f"wrote {out}/metrics.json and {out}/logs/ ({rounds} FL rounds)")
+    typer.echo(f"wrote {out}/metrics.json and {out}/logs/ ({len(metrics.fl_rounds)} FL rounds)")
 
 
 @deploy_app.command("report")
@@ -761,19 +760,20 @@ def deploy_report(
 
     Example: dronefl deploy report --world runs/world --cloud runs/cloud --out runs/episode
     """
-    from dronefl.deploy.results import deployment_metrics
-    from dronefl.io import atomic_write_json
+    import numpy as np
+
+    from dronefl.deploy.results import CloudLog, RunInfo, deployment_metrics
 
     with _deploy_errors():
         spec = load_scenario(scenario)
         for path in (world_dir / "world.npz", cloud_dir / "cloud.npz", cloud_dir / "cloud.json"):
             if not path.is_file():
                 raise FileNotFoundError(f"{path} does not exist")
-        out.mkdir(parents=True, exist_ok=True)
-        metrics = deployment_metrics(
-            spec, world_dir / "world.npz", cloud_dir / "cloud.npz", cloud_dir / "cloud.json", out
-        )
-        atomic_write_json(out / "metrics.json", metrics)
+        settings = CloudLog.load(cloud_dir / "cloud.json").settings
+        with np.load(world_dir / "world.npz") as world:
+            seed, environment = int(world["seed"]), str(world["environment"])
+        run = RunInfo(str(settings["method"]), seed, environment, dict(settings))
+        deployment_metrics(spec, world_dir, cloud_dir, out, run).save(out / "metrics.json")
     typer.echo(f"wrote {out}/metrics.json and {out}/episode.npz")
 
 

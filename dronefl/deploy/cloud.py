@@ -34,6 +34,7 @@ from flwr.app import ConfigRecord, Context, Message, RecordDict
 from flwr.common.logger import log
 from flwr.serverapp import Grid, ServerApp
 
+from dronefl.accounting import DIRECTIONS, ByteCounter
 from dronefl.config import Scenario, load_scenario
 from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.clientapp import load_model
@@ -50,14 +51,15 @@ from dronefl.deploy.link import (
     LinkConfig,
 )
 from dronefl.deploy.messages import LabelsMessage, TelemetryMessage, encode_release
+from dronefl.deploy.results import CloudLog, DeployedRound, TrafficCount
 from dronefl.experiments.track import fusion_config
 from dronefl.fl.records import ARRAYS_KEY, ROUND_KEY, FlSettings
 from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
-from dronefl.io import atomic_savez, atomic_write_json
+from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
 from dronefl.tracking import Fuser, PositionMeasurement
-from dronefl.wire import ByteCounter, ControlMessage, PredictionMessage, WireError
+from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
 DEPLOY_METHODS = ("dronefl", "fixed")
 _PREFIX = "deploy-"
@@ -155,7 +157,7 @@ class CloudEpisode:
         self.inbox = _Inbox()
         self.state, _ = load_model(Path(settings.model))
         self.history: list[dict] = []
-        self.rounds: list[dict] = []
+        self.rounds: list[DeployedRound] = []
         self.nodes: dict[int, int] = {}  # drone id -> its SuperNode's id
         m, n = len(s.drones), len(s.targets)
         self.prediction = np.full((self.n_steps, m, n, 2), np.nan)
@@ -335,46 +337,53 @@ class CloudEpisode:
                 self.counter.add(drone_id, "down", "labels", len(payload))
         absent = self._refresh_nodes(ready)
         nodes = {self.nodes[d]: d for d in ready if d not in absent}  # node id -> drone
-        entry = {"round": server_round, "t": steps * self.scenario.dt, "step": steps}
-        trained: dict[str, float] = {}
+        trained: dict[int, float] = {}
+        rejected: tuple[str, ...] = ()
+        weights: dict[str, dict[int, int]] = {"down": {}, "up": {}}
         if nodes:
             grid = DroneGrid(self.grid, nodes, self._is_alive, self.settings.round_timeout)
             driver = RoundDriver(grid, self.fl, len(nodes), self.history)
             new_state = driver.play(self.state, server_round)
-            finished = driver.history and driver.history[-1]["round"] == server_round
-            if finished:
+            if driver.history and driver.history[-1]["round"] == server_round:
                 self.history = driver.history
                 result = driver.history[-1]
-                trained = result["train_loss"]
-                entry |= {"rejected": result["rejected"]}
+                trained = {int(d): float(v) for d, v in result["train_loss"].items()}
+                rejected = tuple(result["rejected"])
                 if trained:
                     self.state = new_state
-                    self._install(grid, server_round, nodes, result["bytes"])
-        participants = sorted(int(d) for d in trained)
-        entry |= {
-            "participants": participants,
-            "missing": [d for d in self.scenario.drone_ids if d not in participants],
-            "train_loss": trained,
-            "seconds": time.perf_counter() - started,
-        }
-        if entry["missing"]:
-            log(WARNING, "round %d: no update from drones %s", server_round, entry["missing"])
+                    weights = self._install(grid, server_round, nodes, result["bytes"])
+        participants = tuple(sorted(trained))
+        entry = DeployedRound(
+            round=server_round,
+            t=steps * self.scenario.dt,
+            seconds=time.perf_counter() - started,
+            train_loss=trained,
+            rejected=rejected,
+            weight_bytes_down=weights["down"],
+            weight_bytes_up=weights["up"],
+            step=steps,
+            participants=participants,
+            missing=tuple(d for d in self.scenario.drone_ids if d not in participants),
+        )
+        if entry.missing:
+            log(WARNING, "round %d: no update from drones %s", server_round, list(entry.missing))
         self.rounds.append(entry)
         self.fl_steps.append(steps)
-        log(INFO, "cloud: round %d done in %.1f s", server_round, entry["seconds"])
+        log(INFO, "cloud: round %d done in %.1f s", server_round, entry.seconds)
 
     def _is_alive(self, drone_id: int) -> bool:
         return f"drone/{drone_id}" in self.link.alive()
 
     def _install(
         self, grid: DroneGrid, server_round: int, nodes: dict[int, int], traffic: dict
-    ) -> None:
+    ) -> dict[str, dict[int, int]]:
         """Send the new global model to every node of the round and have its drone load it;
-        counts the round's weight bytes per drone."""
-        for direction in ("down", "up"):  # the round's training messages, shared evenly
+        returns (and counts) the round's weight bytes per drone, by direction."""
+        weights: dict[str, dict[int, int]] = {"down": {}, "up": {}}
+        for direction in DIRECTIONS:  # the round's training messages, shared evenly
             share = traffic.get(direction, {}).get("train", 0) // len(nodes)
             for drone in nodes.values():
-                self.counter.add(drone, direction, "weights", share)
+                weights[direction][drone] = share
         content = RecordDict(
             {
                 ARRAYS_KEY: self.fl.layout.pack(self.state),
@@ -385,9 +394,11 @@ class CloudEpisode:
             Message(content, node, "query", group_id=f"install-{server_round}") for node in nodes
         ]
         for message in messages:
-            self.counter.add(
-                nodes[message.metadata.dst_node_id], "down", "weights", message_bytes(message)
-            )
+            drone = nodes[message.metadata.dst_node_id]
+            weights["down"][drone] += message_bytes(message)
+        for direction, per_drone in weights.items():
+            for drone, n_bytes in per_drone.items():
+                self.counter.add(drone, direction, "weights", n_bytes)
         for reply in grid.send_and_receive(messages):
             drone = nodes.get(reply.metadata.src_node_id)
             if drone is None or reply.has_error():
@@ -395,6 +406,7 @@ class CloudEpisode:
             answer = self.link.request(RELOAD.format(id=drone), str(server_round).encode(), 30.0)
             if answer != b"ok":
                 log(WARNING, "round %d: drone %d did not load the new model", server_round, drone)
+        return weights
 
     # -- results ---------------------------------------------------------------------------
 
@@ -410,19 +422,22 @@ class CloudEpisode:
             step_ms=self.step_ms,
             fl_steps=np.array(self.fl_steps, dtype=np.int64),
         )
-        sim_seconds = self.n_steps * self.scenario.dt
-        atomic_write_json(
-            out / "cloud.json",
-            {
-                "wall_seconds": wall,
-                "planner_ms_per_step": 1000 * self.planner_seconds / self.n_steps,
-                "gating_rejections": int(self.fuser.rejections),
-                "track_resets": int(self.fuser.resets),
-                "fl_rounds": self.rounds,
-                "late_predictions": {str(d): n for d, n in sorted(self.inbox.late.items())},
-                "communication_kb_per_s": self.counter.kb_per_second(sim_seconds),
-                "telemetry_kb_per_s": self.telemetry_bytes / 1000 / sim_seconds,
-                "supernodes": {str(d): n for d, n in sorted(self.nodes.items())},
-                "settings": asdict(self.settings),
-            },
+        traffic = tuple(
+            TrafficCount(d, way, kind, n)
+            for d in self.scenario.drone_ids
+            for way in DIRECTIONS
+            for kind in ("predictions", "control", "labels", "weights")
+            if (n := self.counter.total(d, way, kind))
         )
+        CloudLog(
+            wall_seconds=wall,
+            planner_ms_per_step=1000 * self.planner_seconds / self.n_steps,
+            gating_rejections=int(self.fuser.rejections),
+            track_resets=int(self.fuser.resets),
+            rounds=tuple(self.rounds),
+            late_predictions=dict(sorted(self.inbox.late.items())),
+            traffic=traffic,
+            telemetry_bytes=self.telemetry_bytes,
+            supernodes=dict(sorted(self.nodes.items())),
+            settings=asdict(self.settings),
+        ).save(out / "cloud.json")

@@ -16,7 +16,6 @@ drone i's SuperNode runtime API B+10+i.
 
 from __future__ import annotations
 
-import re
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -30,8 +29,7 @@ from dronefl.deploy.clientapp import save_model
 from dronefl.deploy.cloud import DEPLOY_METHODS
 from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
-from dronefl.deploy.results import deployment_metrics
-from dronefl.io import atomic_write_json
+from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
 
 HOST = "127.0.0.1"
 
@@ -79,20 +77,17 @@ class DeployConfig:
 
 
 def pretrained_model(config: DeployConfig, scenario: Scenario, out: Path) -> Path:
-    """The crop-field pretrained DroneFL model (:mod:`dronefl.experiments.pretrain`) as a
-    model file every process loads by path."""
-    from dronefl.experiments.pretrain import pretrained_state
+    """The crop-field pretrained DroneFL model (:mod:`dronefl.experiments.pretrain`, the one
+    ``dronefl track`` starts from) as a model file every process loads by path."""
+    from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 
-    match = re.fullmatch(r"case(\d+)", scenario.name)
-    if match is None:
-        raise DeployError(f"--scenario: no pretrained model for {scenario.name!r} (case1-3 only)")
-    state = pretrained_state(int(match.group(1)), "dronefl", config.pretrained, progress=False)
+    state = pretrained_state(PretrainSpec(scenario, "dronefl"), config.pretrained, progress=False)
     path = out / "model" / "pretrained.npz"
     save_model(path, state, 0)
     return path
 
 
-def run_deploy(config: DeployConfig) -> dict:
+def run_deploy(config: DeployConfig) -> DeploymentMetrics:
     """Run the episode; returns (and writes) its metrics."""
     scenario = load_scenario(config.scenario)
     ports = config.ports(scenario)
@@ -135,30 +130,16 @@ def run_deploy(config: DeployConfig) -> dict:
                 child.process.wait(10)
             except Exception:  # noqa: BLE001 - stopped below in any case
                 break
-    metrics = deployment_metrics(
-        scenario,
-        out / "world" / "world.npz",
-        out / "cloud" / "cloud.npz",
-        out / "cloud" / "cloud.json",
-        out,
+    run = RunInfo(
+        method=config.method,
+        seed=config.seed,
+        environment=config.environment,
+        config={k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
+        processes=processes,
+        peak_memory_mb=peak / 2**20,
     )
-    match = re.fullmatch(r"case(\d+)", scenario.name)
-    metrics.update(
-        {
-            "case": int(match.group(1)) if match else None,
-            "scenario": scenario.name,
-            "method": config.method,
-            "seed": config.seed,
-            "environment": config.environment,
-            "detector": "projection",
-            "labels": "tracks",
-            "processes": processes,
-            "peak_memory_mb": peak / 2**20,
-            "launcher_seconds": time.perf_counter() - started,
-            "config": {k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
-        }
-    )
-    atomic_write_json(out / "metrics.json", metrics)
+    metrics = deployment_metrics(scenario, out / "world", out / "cloud", out, run)
+    metrics.save(out / "metrics.json")
     return metrics
 
 

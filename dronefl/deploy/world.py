@@ -147,7 +147,14 @@ def run_world(settings: WorldSettings) -> Path:
                 print(f"world: step {k + 1}/{n_steps} t={world.t:.1f} s", flush=True)
         _record(truth, n_steps, world)
     path = Path(settings.out) / "world.npz"
-    atomic_savez(path, missing_control=missing, step_ms=step_ms, **truth)
+    atomic_savez(
+        path,
+        missing_control=missing,
+        step_ms=step_ms,
+        seed=np.array(settings.seed),
+        environment=np.array(settings.environment),
+        **truth,
+    )
     print(f"world: done, wrote {path}", flush=True)
     return path
 

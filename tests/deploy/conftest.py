@@ -36,7 +36,7 @@ def quick_pretrained(tmp_path_factory) -> Path:
     import torch
 
     from dronefl.config import load_scenario
-    from dronefl.experiments.pretrain import pretrain_settings
+    from dronefl.experiments.pretrain import PretrainSpec
     from dronefl.experiments.simulate import simulate
     from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
     from dronefl.logs import load_run
@@ -58,7 +58,7 @@ def quick_pretrained(tmp_path_factory) -> Path:
     model = build_model(predictor_config("dronefl", 10, 1), seed=0)
     torch.set_num_threads(1)
     train_local(model, windows, TrainConfig(epochs=5, seed=0))
-    settings = pretrain_settings(1, "dronefl", folder)
+    settings = PretrainSpec(load_scenario("case1"), "dronefl").settings(folder)
     save_checkpoint(
         settings.checkpoint_path,
         settings.history_path,

@@ -1,7 +1,6 @@
 """Faults: a drone killed mid-episode never stops it, and a restarted drone rejoins; a
 SuperNode whose key is not registered is refused by the SuperLink."""
 
-import json
 import os
 import shutil
 import signal
@@ -17,6 +16,7 @@ from deploy_helpers import MARK, cli, free_port_block, survivors
 
 from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import save_model
+from dronefl.deploy.results import DeploymentMetrics
 from dronefl.models.model import build_model, predictor_config
 
 
@@ -61,20 +61,20 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
     stdout = said.read_text()
     assert launcher.returncode == 0, stdout[-3000:]
     assert survivors(run_env[MARK]) == []
-    metrics = json.loads((out / "metrics.json").read_text())
-    rounds = {r["round"]: r for r in metrics["fl_rounds"]}
+    metrics = DeploymentMetrics.load(out / "metrics.json")
+    rounds = {r.round: r for r in metrics.fl_rounds}
     assert sorted(rounds) == [1, 2, 3]  # at t = 10, 20, 30 s: the episode went on
-    assert metrics["silent_steps"]["1"] == 0
-    assert metrics["silent_steps"]["2"] > 0
-    assert metrics["missed_rounds"]["2"][0] == 1 and metrics["missed_rounds"]["1"] == []
-    assert rounds[1]["participants"] == [1]
+    assert metrics.silent_steps[1] == 0
+    assert metrics.silent_steps[2] > 0
+    assert metrics.missed_rounds[2][0] == 1 and metrics.missed_rounds[1] == ()
+    assert rounds[1].participants == (1,)
     # Case 1 gives target 2 to drone 2 alone: while it was gone the cloud kept predicting
     # target 2's track (no drop), and the tracking went on for both targets.
     with np.load(out / "episode.npz") as episode:
         assert np.isfinite(episode["track_position"][1:]).all()
     # Restarted, it predicts again and takes part in a later round.
-    assert metrics["silent_steps"]["2"] < 200 - 25
-    assert 2 in rounds[3]["participants"]
+    assert metrics.silent_steps[2] < 200 - 25
+    assert 2 in rounds[3].participants
     assert "drone 2 restarted" in stdout
 
 
