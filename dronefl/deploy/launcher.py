@@ -119,11 +119,9 @@ def run_deploy(config: DeployConfig) -> DeploymentMetrics:
                 "the cloud, the world, every drone and every SuperNode to be up",
                 children,
             )
+        print(f"deploy: all up after {time.perf_counter() - started:.1f} s", flush=True)
         processes = len(marked(children.owner))
-        print(
-            f"deploy: all up ({processes} processes) after {time.perf_counter() - started:.1f} s",
-            flush=True,
-        )
+        print(f"deploy: {processes} processes", flush=True)
         peak = _watch(children, cloud, world, drones, commands, config)
         for child in drones.values():  # they end when the world has
             try:
