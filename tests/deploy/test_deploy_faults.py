@@ -65,8 +65,10 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
     metrics = DeploymentMetrics.load(out / "metrics.json")
     rounds = {r.round: r for r in metrics.fl_rounds}
     assert sorted(rounds) == [1, 2]  # at t = 20 and 40 s: the episode went on
-    assert metrics.silent_steps[1] == 0
-    assert metrics.silent_steps[2] > 0
+    # Killed 5 s in and back only after round 1 (at 20 s): silent for at least 75 steps. The
+    # live drone may miss a 150 ms deadline now and then on a loaded machine, no more.
+    assert metrics.silent_steps[2] >= 75
+    assert metrics.silent_steps[1] <= 15
     assert metrics.missed_rounds[2][0] == 1 and metrics.missed_rounds[1] == ()
     assert rounds[1].participants == (1,)
     # Case 1 gives target 2 to drone 2 alone: while it was gone the cloud kept predicting
@@ -74,11 +76,11 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
     with np.load(out / "episode.npz") as episode:
         tracked = np.isfinite(episode["track_position"]).all(axis=(1, 2))
     assert tracked[np.argmax(tracked) :].all()
-    # Restarted, it talks to the cloud again (not silent to the end) and its new SuperNode
-    # receives the global model of the last round. (Whether it trains in a later round
-    # depends on finding its target again after holding position while it was down.)
+    # Restarted (its autopilot held position meanwhile, its target ~7.5 m on), it talks to
+    # the cloud again, trains in round 2 through its new SuperNode and loads that model.
     assert "drone 2 restarted" in stdout
-    assert metrics.silent_steps[2] < 300 - 10
+    assert metrics.silent_steps[2] < 300 - 25
+    assert rounds[2].participants == (1, 2)
     restarted = (out / "logs" / "drone-2-restart1.log").read_text()
     assert "model of round 2 loaded" in restarted
 
