@@ -3,7 +3,10 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 
 from __future__ import annotations
 
+import signal
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
 
@@ -701,6 +704,283 @@ def replay(
     if out is not None:
         write_result(result, out)
         typer.echo(f"wrote {out}/ (replay.json, replay.md)")
+
+
+# -- deployment: the same loop as separate processes (dronefl.deploy) ------------------------
+
+deploy_app = typer.Typer(
+    no_args_is_help=True, help="Deployment on one machine: all processes, certificates."
+)
+app.add_typer(deploy_app, name="deploy")
+StartTimeoutOption = Annotated[
+    float, typer.Option("--start-timeout", help="Seconds to wait for the other processes.")
+]
+TlsDirOption = Annotated[
+    str, typer.Option("--tls-dir", help="Folder of `dronefl deploy certs` (empty: no TLS).")
+]
+ModelOption = Annotated[Path, typer.Option("--model", help="Model weights file (by path).")]
+
+
+@contextmanager
+def _deploy_errors() -> Iterator[None]:
+    """Run a deployment command: SIGTERM ends it like Ctrl-C (so that it stops its children);
+    a bad setup (code 2) or a failure at run time (code 1) is one line, never a traceback."""
+    from dronefl.deploy.cloud import CloudError
+    from dronefl.deploy.link import LinkError
+    from dronefl.deploy.processes import DeployError
+    from dronefl.deploy.world import WorldError
+
+    def terminate(signum: int, _frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    except (ValueError, FileNotFoundError, ScenarioError) as exc:
+        raise fail(str(exc)) from None
+    except (DeployError, LinkError, WorldError, CloudError) as exc:
+        typer.secho(f"error: {exc}", err=True, fg="red")
+        raise typer.Exit(code=1) from None
+    except KeyboardInterrupt:
+        typer.secho("interrupted; every process started was stopped", err=True)
+        raise typer.Exit(code=130) from None
+
+
+def _endpoints(text: str) -> tuple[str, ...]:
+    return tuple(e.strip() for e in text.split(",") if e.strip())
+
+
+@app.command()
+def world(
+    scenario: ScenarioOption = "case1",
+    duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
+    seed: SeedOption = 0,
+    env: Annotated[str, typer.Option("--env", help="Environment.")] = "orchard",
+    listen: Annotated[str, typer.Option(help="Zenoh endpoint host:port.")] = "127.0.0.1:7440",
+    grace_ms: Annotated[float, typer.Option(help="Wall ms a control may be late.")] = 150.0,
+    start_timeout: StartTimeoutOption = 120.0,
+    tls_dir: TlsDirOption = "",
+    out: OutOption = Path("runs/deploy/world"),
+) -> None:
+    """The simulator of a deployment: owns the clock, publishes every drone's sensors over
+    Zenoh and applies the controls it receives. Writes world.npz.
+
+    Example: dronefl world --scenario case1 --duration 120 --listen 0.0.0.0:7440
+    """
+    from dronefl.deploy.world import WorldSettings, run_world
+
+    check_choice(env, ENVIRONMENTS, "--env")
+    with _deploy_errors():
+        load_scenario(scenario)
+        settings = WorldSettings(
+            scenario, out, seed, duration, env, listen, tls_dir, start_timeout, grace_ms=grace_ms
+        )
+        run_world(settings)
+
+
+@app.command()
+def drone(
+    drone_id: Annotated[int, typer.Option("--id", help="Drone id in the scenario.")],
+    model: ModelOption,
+    scenario: ScenarioOption = "case1",
+    connect: Annotated[
+        str, typer.Option(help="Zenoh endpoints of the world and the cloud, comma-separated.")
+    ] = "127.0.0.1:7440,127.0.0.1:7441",
+    superlink: Annotated[str, typer.Option(help="SuperLink host:port.")] = "127.0.0.1:7442",
+    runtime_port: Annotated[int, typer.Option(help="SuperNode's local runtime port.")] = 7450,
+    data_dir: Annotated[Path, typer.Option(help="The drone's disk.")] = Path("runs/deploy/drone"),
+    start_timeout: StartTimeoutOption = 120.0,
+    tls_dir: TlsDirOption = "",
+) -> None:
+    """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
+    controls down over Zenoh, and a Flower SuperNode that trains on that disk.
+
+    Example: dronefl drone --id 1 --model runs/deploy/model/pretrained.npz
+    """
+    from dronefl.deploy.drone import DroneSettings, run_drone
+
+    with _deploy_errors():
+        load_scenario(scenario)
+        settings = DroneSettings(
+            scenario,
+            drone_id,
+            model,
+            data_dir,
+            _endpoints(connect),
+            superlink,
+            runtime_port,
+            tls_dir,
+            start_timeout,
+        )
+        if not model.is_file():
+            raise FileNotFoundError(f"--model: {model} does not exist")
+        run_drone(settings, data_dir / "logs")
+
+
+@app.command()
+def cloud(
+    model: ModelOption,
+    scenario: ScenarioOption = "case1",
+    method: Annotated[str, typer.Option(help="dronefl|fixed")] = "dronefl",
+    duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
+    fl_period: Annotated[float, typer.Option(help="Simulated s between FL rounds.")] = 40.0,
+    seed: SeedOption = 0,
+    epochs: Annotated[int, typer.Option(help="Local epochs per round.")] = 10,
+    stride: Annotated[int, typer.Option(help="Samples between training windows.")] = 2,
+    deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
+    listen: Annotated[str, typer.Option(help="Zenoh endpoint host:port.")] = "127.0.0.1:7441",
+    connect: Annotated[str, typer.Option(help="The world's Zenoh endpoint.")] = "127.0.0.1:7440",
+    superlink_host: Annotated[str, typer.Option(help="SuperLink address.")] = "127.0.0.1",
+    superlink_port: Annotated[int, typer.Option(help="SuperLink port.")] = 7442,
+    start_timeout: StartTimeoutOption = 120.0,
+    tls_dir: TlsDirOption = "",
+    out: OutOption = Path("runs/deploy/cloud"),
+) -> None:
+    """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
+    that fuses, plans and plays an FL round every --fl-period s. Writes cloud.npz/json.
+
+    Example: dronefl cloud --model runs/deploy/model/pretrained.npz --superlink-host 0.0.0.0
+    """
+    from dronefl.deploy.cloud import CloudSettings
+    from dronefl.deploy.superlink import SuperLinkSettings, run_cloud
+    from dronefl.fl.records import FlSettings
+
+    with _deploy_errors():
+        load_scenario(scenario)
+        if not model.is_file():
+            raise FileNotFoundError(f"--model: {model} does not exist")
+        if tls_dir and not Path(tls_dir).is_dir():
+            raise FileNotFoundError(f"--tls-dir: {tls_dir} does not exist")
+        out = out.resolve()
+        settings = CloudSettings(
+            scenario=scenario,
+            model=str(model.resolve()),
+            out=str(out),
+            method=method,
+            duration=duration,
+            fl_period=fl_period,
+            deadline_ms=deadline_ms,
+            listen=listen,
+            connect=connect,
+            tls_dir=str(Path(tls_dir).resolve()) if tls_dir else "",
+            start_timeout=start_timeout,
+        )
+        fl = FlSettings(
+            run_dir=str(out / "fl"),
+            out_dir=str(out / "fl" / "global"),
+            method="dronefl",
+            past_steps=10,
+            future_steps=1,
+            stride=stride,
+            epochs=epochs,
+            seed=seed,
+            labels="tracks",
+            train_fraction=1.0,
+        )
+        link = SuperLinkSettings(superlink_host, superlink_port, start_timeout)
+        run_cloud(settings, fl, link, out / "logs")
+
+
+@deploy_app.command("up")
+def deploy_up(
+    scenario: ScenarioOption = "case1",
+    method: Annotated[str, typer.Option(help="dronefl|fixed")] = "dronefl",
+    duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
+    fl_period: Annotated[float, typer.Option(help="Simulated s between FL rounds.")] = 40.0,
+    seed: SeedOption = 0,
+    env: Annotated[str, typer.Option("--env", help="Environment.")] = "orchard",
+    tls: Annotated[bool, typer.Option(help="TLS, SuperNode authentication, Zenoh TLS.")] = False,
+    certs: Annotated[
+        Path | None, typer.Option(help="Certificate folder (default: a fresh one in --out).")
+    ] = None,
+    base_port: Annotated[int, typer.Option(help="First of the deployment's ports.")] = 7440,
+    deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
+    start_timeout: StartTimeoutOption = 120.0,
+    epochs: Annotated[int, typer.Option(help="Local epochs per round.")] = 10,
+    restart_drones: Annotated[bool, typer.Option(help="Restart a drone that dies.")] = False,
+    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
+        "runs/pretrained"
+    ),
+    out: OutOption = Path("runs/deploy"),
+) -> None:
+    """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
+    separate processes on 127.0.0.1; writes metrics.json and logs/ (one log per process).
+
+    Example: dronefl deploy up --scenario case1 --duration 120 --fl-period 40 --out runs/dep
+    """
+    from dronefl.deploy.launcher import DeployConfig, run_deploy
+    from dronefl.report.tables import format_metrics
+
+    check_choice(env, ENVIRONMENTS, "--env")
+    with _deploy_errors():
+        config = DeployConfig(
+            scenario=scenario,
+            out=out,
+            method=method,
+            duration=duration,
+            fl_period=fl_period,
+            seed=seed,
+            environment=env,
+            tls=tls,
+            certs=certs,
+            base_port=base_port,
+            deadline_ms=deadline_ms,
+            start_timeout=start_timeout,
+            epochs=epochs,
+            pretrained=pretrained,
+            restart_drones=restart_drones,
+        )
+        metrics = run_deploy(config)
+    typer.echo(format_metrics(metrics))
+    typer.echo(f"wrote {out}/metrics.json and {out}/logs/ ({len(metrics.fl_rounds)} FL rounds)")
+
+
+@deploy_app.command("report")
+def deploy_report(
+    world_dir: Annotated[Path, typer.Option("--world", help="Folder with the world's world.npz.")],
+    cloud_dir: Annotated[Path, typer.Option("--cloud", help="Folder with cloud.npz/json.")],
+    scenario: ScenarioOption = "case1",
+    out: OutOption = Path("runs/deploy"),
+) -> None:
+    """Join the world's and the cloud's logs of a multi-host episode into metrics.json.
+
+    Example: dronefl deploy report --world runs/world --cloud runs/cloud --out runs/episode
+    """
+    import numpy as np
+
+    from dronefl.deploy.results import CloudLog, RunInfo, deployment_metrics
+
+    with _deploy_errors():
+        spec = load_scenario(scenario)
+        for path in (world_dir / "world.npz", cloud_dir / "cloud.npz", cloud_dir / "cloud.json"):
+            if not path.is_file():
+                raise FileNotFoundError(f"{path} does not exist")
+        settings = CloudLog.load(cloud_dir / "cloud.json").settings
+        with np.load(world_dir / "world.npz") as world:
+            seed, environment = int(world["seed"]), str(world["environment"])
+        run = RunInfo(str(settings["method"]), seed, environment, dict(settings))
+        deployment_metrics(spec, world_dir, cloud_dir, out, run).save(out / "metrics.json")
+    typer.echo(f"wrote {out}/metrics.json and {out}/episode.npz")
+
+
+@deploy_app.command("certs")
+def deploy_certs(
+    folder: Annotated[Path, typer.Argument(help="Folder to write.")],
+    scenario: ScenarioOption = "case1",
+    hosts: Annotated[
+        str, typer.Option(help="Hosts the certificates name, comma-separated.")
+    ] = "127.0.0.1,localhost",
+) -> None:
+    """A CA, the SuperLink's and every process's TLS certificates, one SuperNode key pair per
+    drone of the scenario.
+
+    Example: dronefl deploy certs runs/certs --scenario case1 --hosts 10.0.0.5,cloud.local
+    """
+    from dronefl.deploy.certs import make_certificates
+
+    spec = load_scenario(scenario)
+    make_certificates(folder, spec.drone_ids, _endpoints(hosts))
+    typer.echo(f"wrote {folder}/ (ca.crt, superlink.crt, zenoh-*.crt, supernode-<id>[.pub])")
 
 
 app.command("bench")(bench_command)

@@ -1,0 +1,25 @@
+"""Deployment: the closed loop as separate processes (SPEC §11).
+
+One module per role, plus what they share::
+
+    world.py      the simulator (stands in for vehicles and autopilots); owns the clock
+    drone.py      one per drone: predictor on ONNX Runtime, onboard record on its disk,
+                  and a Flower SuperNode whose ClientApp (clientapp.py) trains on that disk
+    cloud.py      the ServerApp: fusion, planning, an FL round every ``fl_period`` s
+    superlink.py  the cloud host's process: a Flower SuperLink and ``flwr run`` of cloud.py
+    launcher.py   ``dronefl deploy up``: every process above on one machine, health, cleanup
+    link.py       the per-step link over Zenoh (peer mode, explicit endpoints, TLS)
+    messages.py   world <-> drone/cloud messages (the drone <-> cloud radio link keeps
+                  the wire formats of :mod:`dronefl.wire`)
+    grid.py       the Flower Grid as the cloud uses it: only live drones, fast polling
+    flower.py     command lines of the Flower executables and their connection file
+    processes.py  owned child processes (process groups, stopped on every exit path)
+    certs.py      CA, SuperLink/Zenoh certificates and SuperNode key pairs
+    results.py    the episode's metrics from the world's and the cloud's logs
+
+Lock-step: the world publishes step ``k`` (telemetry to the cloud, each drone's odometry and
+detections to that drone); each drone predicts and publishes; the cloud waits for the
+predictions up to a wall-clock deadline, fuses what arrived (a late drone is silent that
+step), plans and sends each drone its control, which the drone hands to its autopilot (the
+world); after an FL round, if one is due, the cloud releases the step and the world moves on.
+"""

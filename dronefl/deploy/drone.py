@@ -1,0 +1,294 @@
+"""A drone process (``dronefl drone --id I``): the onboard side of one drone.
+
+Each step it receives its sensors from the world (odometry and detections), appends them to
+its onboard record, predicts its assigned targets' next positions with the trajectory
+transformer on ONNX Runtime and publishes them to the cloud
+(:class:`~dronefl.wire.PredictionMessage`; an empty one when it has nothing to predict yet,
+so that the cloud need not wait for it); the cloud's control
+(:class:`~dronefl.wire.ControlMessage`) it hands on to its autopilot (the world).
+
+Beside it runs its Flower SuperNode (``flower-supernode``, a child process), whose node
+config names the drone and its data folder; the drone tells the cloud (Zenoh query ``node``)
+which node id the SuperLink gave it, so that a round is sent to the SuperNodes of the live
+drones only. Before an FL round the cloud asks the drone
+(Zenoh query ``flush``) to write its onboard record and the round's pseudo-labels there; after
+the round the ClientApp has written the new global model there, and the cloud asks the drone
+(``reload``) to load it into its predictor.
+
+The drone ends when the world does (its liveliness goes), writing its record a last time.
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import re
+import shlex
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from dronefl.config import load_scenario
+from dronefl.deploy.certs import CertificateFolder
+from dronefl.deploy.clientapp import GLOBAL_MODEL, load_model
+from dronefl.deploy.flower import flower_env, supernode_command
+from dronefl.deploy.link import (
+    ACTUATE,
+    CONTROL,
+    EPISODE,
+    FLUSH,
+    NODE,
+    PREDICTIONS,
+    RELOAD,
+    SENSE,
+    Link,
+    LinkConfig,
+)
+from dronefl.deploy.messages import LabelsMessage, SenseMessage
+from dronefl.deploy.processes import Child, Children, DeployError, port_open, wait_for
+from dronefl.logs import PseudoLabels
+from dronefl.models.model import build_model, predictor_config
+from dronefl.models.online import OnboardRecord
+from dronefl.models.predictor import TrajectoryPredictor
+from dronefl.wire import PredictionMessage
+
+#: How the SuperNode logs the node id the SuperLink assigned it.
+_NODE_ID = re.compile(r"SuperNode ID: (\d+)")
+
+
+@dataclass(frozen=True)
+class DroneSettings:
+    """One drone process.
+
+    ``connect`` the Zenoh endpoints of the world and the cloud (``host:port``); ``superlink``
+    the SuperLink's ``host:port``; ``runtime_port`` the port of this SuperNode's local
+    ClientApp API; ``model`` the pretrained weights; ``data_dir`` the drone's disk;
+    ``tls_dir`` the certificate folder (empty: no TLS; else also SuperNode authentication
+    with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink.
+    """
+
+    scenario: str
+    drone_id: int
+    model: Path
+    data_dir: Path
+    connect: tuple[str, ...] = ("127.0.0.1:7440", "127.0.0.1:7441")
+    superlink: str = "127.0.0.1:7442"
+    runtime_port: int = 7450
+    tls_dir: str = ""
+    start_timeout: float = 120.0
+    past_steps: int = 10
+
+    @property
+    def link(self) -> LinkConfig:
+        certs = CertificateFolder(Path(self.tls_dir)) if self.tls_dir else None
+        tls = certs.zenoh(f"drone-{self.drone_id}") if certs else None
+        return LinkConfig((), self.connect, tls)
+
+
+class DroneProcess:
+    """The drone's state between Zenoh callbacks and its main loop."""
+
+    def __init__(self, settings: DroneSettings, info: dict, predictor: TrajectoryPredictor) -> None:
+        scenario = load_scenario(settings.scenario)
+        spec = scenario.drone(settings.drone_id)
+        self.settings = settings
+        self.dt = float(info["dt"])
+        meta = {k: info[k] for k in ("scenario", "environment", "seed")}
+        self.record = OnboardRecord(
+            spec.id, spec.altitude, scenario.target_ids, spec.targets, int(info["steps"]), meta
+        )
+        self.predictor = predictor
+        self.lock = threading.Lock()  # the record and the predictor
+        self.sensed: queue.Queue[bytes] = queue.Queue()
+        self.log_path = Path(settings.data_dir) / f"drone_{spec.id}.npz"
+
+    def flush(self, payload: bytes) -> bytes:
+        """Write the onboard record and the round's pseudo-labels on their steps to disk."""
+        labels = LabelsMessage.decode(payload)
+        with self.lock:
+            if self.record.steps <= self.settings.past_steps:
+                return b"too little data"
+            log = self.record.to_log()
+            log.save(self.log_path)
+        rows = np.rint(log.t / self.dt).astype(int)
+        if rows.max() >= len(labels.position):
+            return b"labels do not cover the record"
+        target_ids = np.array(labels.target_ids, dtype=np.int32)
+        PseudoLabels(log.t, target_ids, labels.position[rows]).save(
+            Path(self.settings.data_dir) / "tracks.npz"
+        )
+        return b"ok"
+
+    def reload(self, payload: bytes) -> bytes:
+        """Load the global model the ClientApp wrote to disk for the round in ``payload``."""
+        state, server_round = load_model(Path(self.settings.data_dir) / GLOBAL_MODEL)
+        if server_round != int(payload.decode()):
+            return f"model on disk is of round {server_round}".encode()
+        with self.lock:
+            self.predictor.load_state(state)
+        print(f"drone {self.settings.drone_id}: model of round {server_round} loaded", flush=True)
+        return b"ok"
+
+    def predict(self, payload: bytes) -> bytes:
+        """Record one step's sensors and return the prediction message to publish."""
+        sense = SenseMessage.decode(payload)
+        drone_id = self.settings.drone_id
+        with self.lock:
+            self.record.append(sense.odometry, sense.detections)
+            window = self.record.window(self.settings.past_steps)
+            if window is None:
+                return PredictionMessage(drone_id, sense.step, (), np.zeros((0, 1, 2))).encode()
+            predicted = self.predictor.predict(*window)[:, 0]  # (n_assigned, 2) m
+        assigned = self.record.target_ids[self.record.assigned]
+        seen = np.isfinite(predicted).all(axis=1)
+        ids = tuple(int(t) for t in assigned[seen])
+        return PredictionMessage(drone_id, sense.step, ids, predicted[seen][:, None]).encode()
+
+
+def load_predictor(path: Path, past_steps: int) -> TrajectoryPredictor:
+    """The DroneFL predictor with the weights in ``path``, on ONNX Runtime."""
+    state, _ = load_model(path)
+    model = build_model(predictor_config("dronefl", past_steps, 1))
+    try:
+        model.load_state_dict(state)
+    except RuntimeError:
+        raise DeployError(
+            f"--model: {path} does not hold the DroneFL predictor's weights"
+        ) from None
+    return TrajectoryPredictor(model, runtime="onnx")
+
+
+def run_drone(settings: DroneSettings, logs: Path) -> None:
+    """Run the drone until the world's episode ends."""
+    scenario = load_scenario(settings.scenario)
+    if settings.drone_id not in scenario.drone_ids:
+        raise DeployError(
+            f"--id: drone {settings.drone_id} is not in scenario {scenario.name} "
+            f"(drones {', '.join(map(str, scenario.drone_ids))})"
+        )
+    torch.set_num_threads(1)
+    predictor = load_predictor(Path(settings.model), settings.past_steps)
+    Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
+    host, port = settings.superlink.rsplit(":", 1)
+    with Children(logs) as children, Link(settings.link) as link:
+        wait_for(
+            lambda: port_open(host, int(port)),
+            settings.start_timeout,
+            f"the SuperLink at {settings.superlink} (unreachable)",
+        )
+        supernode = _start_supernode(settings, children)
+        info = _episode(link, settings)
+        drone = DroneProcess(settings, info, predictor)
+        _serve(link, drone, supernode)
+        link.watch_alive()
+        if link.wait_alive({"world"}, settings.start_timeout):
+            raise DeployError(f"the world did not appear within {settings.start_timeout:.0f} s")
+        link.announce(f"drone/{settings.drone_id}")
+        print(f"drone {settings.drone_id}: up, {info['steps']} steps", flush=True)
+        _loop(link, drone, supernode)
+
+
+def _start_supernode(settings: DroneSettings, children: Children) -> Child:
+    """Start the SuperNode and wait until the SuperLink has admitted it (it logs its node
+    id). One that exits first (say, it connected before the cloud registered its key) is
+    started again until ``start_timeout``; then the SuperLink's refusal is the error."""
+    certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
+    command = supernode_command(settings, certs)
+    env = flower_env(Path(settings.data_dir) / "flwr")
+    print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
+    deadline = time.monotonic() + settings.start_timeout
+    name = f"supernode-{settings.drone_id}"
+    refused = None  # why the SuperLink turned the last attempt away
+    while True:
+        supernode = children.start(name, command, env)
+        while supernode.process.poll() is None and not supernode_id(supernode):
+            if time.monotonic() > deadline:
+                if refused is not None:
+                    raise DeployError(
+                        f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
+                    )
+                raise DeployError(
+                    f"the SuperNode did not join the SuperLink at {settings.superlink} within "
+                    f"{settings.start_timeout:.0f} s"
+                )
+            time.sleep(0.2)
+        if supernode.process.poll() is None:
+            return supernode
+        refused = _refusal(supernode.output())
+        if time.monotonic() > deadline:
+            raise DeployError(
+                f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
+            )
+        print(
+            f"drone {settings.drone_id}: SuperNode not admitted ({refused}); retrying", flush=True
+        )
+        time.sleep(1.0)
+
+
+def _refusal(output: str) -> str:
+    """The line of a SuperNode's output that says why it gave up."""
+    lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
+    reasons = [ln for ln in lines if re.search(r"failed|refused|denied|unauthori", ln, re.I)]
+    return (reasons or lines or ["(no output)"])[-1]
+
+
+def _episode(link: Link, settings: DroneSettings) -> dict:
+    """What the world simulates (asked until it answers)."""
+    timeout = settings.start_timeout
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        answer = link.request(EPISODE, timeout=1.0)
+        if answer:
+            return json.loads(answer)
+        time.sleep(0.2)
+    hint = " (are both certificates signed by the same CA?)" if settings.tls_dir else ""
+    raise DeployError(
+        f"the world at {settings.connect[0]} did not answer within {timeout:.0f} s{hint}"
+    )
+
+
+def supernode_id(supernode: Child) -> bytes:
+    """The node id the SuperLink gave this drone's SuperNode (from its log; empty until it
+    has connected)."""
+    found = _NODE_ID.findall(supernode.output())
+    return found[-1].encode() if found else b""
+
+
+def _serve(link: Link, drone: DroneProcess, supernode: Child) -> None:
+    d = drone.settings.drone_id
+
+    def forward(_: str, payload: bytes) -> None:  # cloud's control -> autopilot
+        link.put(ACTUATE.format(id=d), payload)
+
+    link.subscribe(SENSE.format(id=d), lambda _, payload: drone.sensed.put(payload))
+    link.subscribe(CONTROL.format(id=d), forward)
+    link.serve(FLUSH.format(id=d), drone.flush)
+    link.serve(RELOAD.format(id=d), drone.reload)
+    link.serve(NODE.format(id=d), lambda _: supernode_id(supernode))
+
+
+def _loop(link: Link, drone: DroneProcess, supernode: Child) -> None:
+    key = PREDICTIONS.format(id=drone.settings.drone_id)
+    try:
+        while True:
+            try:
+                payload = drone.sensed.get(timeout=0.5)
+            except queue.Empty:
+                if supernode.process.poll() is not None:
+                    raise DeployError(
+                        f"the SuperNode exited with code {supernode.process.returncode}: "
+                        f"{supernode.last_line()}"
+                    ) from None
+                if "world" not in link.alive():
+                    print(f"drone {drone.settings.drone_id}: the world ended", flush=True)
+                    return
+                continue
+            link.put(key, drone.predict(payload))
+    finally:
+        with drone.lock:
+            if drone.record.steps:
+                drone.record.to_log().save(drone.log_path)

@@ -1,0 +1,112 @@
+"""A bad setup fails fast with one clear line and a non-zero exit, never a hang."""
+
+import socket
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+from deploy_helpers import MARK, cli, free_port_block, survivors
+
+from dronefl.deploy.certs import make_certificates
+from dronefl.deploy.clientapp import save_model
+from dronefl.models.model import build_model, predictor_config
+
+
+def _run(command, env, timeout=120):
+    done = subprocess.run(command, env=env, capture_output=True, text=True, timeout=timeout)
+    lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
+    return done.returncode, lines
+
+
+@pytest.fixture
+def model_file(tmp_path):
+    path = tmp_path / "model.npz"
+    save_model(path, build_model(predictor_config("dronefl", 10, 1)).state_dict(), 0)
+    return path
+
+
+def test_model_file_of_another_model_is_named(tmp_path, run_env):
+    path = tmp_path / "other.npz"
+    save_model(path, {"w": torch.from_numpy(np.zeros(3, dtype=np.float32))}, 0)
+    code, lines = _run(cli("drone", "--id", "1", "--model", str(path)), run_env)
+    assert code != 0
+    assert lines == [f"error: --model: {path} does not hold the DroneFL predictor's weights"]
+
+
+def test_port_in_use_is_named(tmp_path, run_env):
+    base = free_port_block()
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", base + 2))
+        busy.listen()
+        code, lines = _run(
+            cli("deploy", "up", "--base-port", str(base), "--out", str(tmp_path / "d")), run_env
+        )
+    assert code != 0
+    assert lines == [
+        f"error: port {base + 2} (SuperLink) is already in use; pick another --base-port"
+    ]
+    assert survivors(run_env[MARK]) == []
+
+
+def test_missing_certificate_folder_is_named(tmp_path, run_env):
+    command = cli(
+        "deploy", "up", "--tls", "--certs", str(tmp_path / "nowhere"),
+        "--base-port", str(free_port_block()), "--out", str(tmp_path / "d"),
+    )  # fmt: skip
+    code, lines = _run(command, run_env)
+    assert code == 2
+    assert lines == [f"error: {tmp_path / 'nowhere' / 'ca.crt'}: certificate or key file missing"]
+
+
+def test_drone_id_not_in_the_scenario(run_env, model_file):
+    code, lines = _run(cli("drone", "--id", "9", "--model", str(model_file)), run_env)
+    assert code != 0
+    assert lines == ["error: --id: drone 9 is not in scenario case1 (drones 1, 2)"]
+
+
+def test_unreachable_superlink(tmp_path, run_env, model_file):
+    port = free_port_block(4)
+    command = cli(
+        "drone", "--id", "1", "--model", str(model_file), "--superlink", f"127.0.0.1:{port}",
+        "--connect", f"127.0.0.1:{port + 1},127.0.0.1:{port + 2}", "--start-timeout", "3",
+        "--data-dir", str(tmp_path / "disk"),
+    )  # fmt: skip
+    code, lines = _run(command, run_env)
+    assert code != 0
+    assert lines == [
+        f"error: timed out after 3 s waiting for the SuperLink at 127.0.0.1:{port} (unreachable)"
+    ]
+    assert survivors(run_env[MARK]) == []
+
+
+def test_certificate_of_another_ca_never_reaches_the_world(tmp_path, run_env, model_file):
+    """The world listens with our CA's certificate; a drone presenting another CA's is not
+    let in, and says so after its start timeout."""
+    ours = make_certificates(tmp_path / "ours", [1])
+    theirs = make_certificates(tmp_path / "theirs", [1])
+    port = free_port_block(4)
+    superlink = socket.socket()  # something listens where the SuperLink would
+    superlink.bind(("127.0.0.1", port + 2))
+    superlink.listen()
+    world = subprocess.Popen(
+        cli("world", "--listen", f"127.0.0.1:{port}", "--tls-dir", str(ours.folder),
+            "--start-timeout", "60", "--out", str(tmp_path / "world")),
+        env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+        command = cli(
+            "drone", "--id", "1", "--model", str(model_file), "--tls-dir", str(theirs.folder),
+            "--superlink", f"127.0.0.1:{port + 2}", "--start-timeout", "8",
+            "--connect", f"127.0.0.1:{port},127.0.0.1:{port + 1}",
+            "--data-dir", str(tmp_path / "disk"),
+        )  # fmt: skip
+        code, lines = _run(command, run_env)
+    finally:
+        world.kill()
+        world.wait()
+        superlink.close()
+    assert code != 0
+    assert lines[-1].startswith("error: ")
+    assert "did not" in lines[-1] and len(lines) == 1
+    assert survivors(run_env[MARK]) == []
