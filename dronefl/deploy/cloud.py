@@ -58,7 +58,7 @@ from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
-from dronefl.tracking import Fuser, PositionMeasurement
+from dronefl.tracking import Fuser, PositionMeasurement, make_labels
 from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
 DEPLOY_METHODS = ("dronefl", "fixed")
@@ -327,7 +327,10 @@ class CloudEpisode:
         """One FL round on the data of steps ``0 .. steps-1`` (the world waits meanwhile)."""
         started = time.perf_counter()
         server_round = len(self.rounds) + 1
-        labels = LabelsMessage(server_round, self.scenario.target_ids, self.track_position[:steps])
+        # The same labels as `dronefl track`'s default: the fused tracks, RTS-smoothed.
+        t = np.arange(steps) * self.scenario.dt
+        smoothed = make_labels("smoothed", self.fuser, t).position
+        labels = LabelsMessage(server_round, self.scenario.target_ids, smoothed)
         payload = labels.encode()
         ready = []
         for drone_id in self._alive_drones():
