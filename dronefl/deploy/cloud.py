@@ -53,7 +53,7 @@ from dronefl.deploy.link import (
 from dronefl.deploy.messages import LabelsMessage, TelemetryMessage, encode_release
 from dronefl.deploy.results import CloudLog, DeployedRound, TrafficCount
 from dronefl.experiments.track import fusion_config
-from dronefl.fl.records import ARRAYS_KEY, ROUND_KEY, FlSettings
+from dronefl.fl.records import ARRAYS_KEY, ROUND_KEY, FlSettings, RoundRecord
 from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
@@ -156,7 +156,7 @@ class CloudEpisode:
         self.counter = ByteCounter()
         self.inbox = _Inbox()
         self.state, _ = load_model(Path(settings.model))
-        self.history: list[dict] = []
+        self.history: list[RoundRecord] = []
         self.rounds: list[DeployedRound] = []
         self.nodes: dict[int, int] = {}  # drone id -> its SuperNode's id
         m, n = len(s.drones), len(s.targets)
@@ -347,14 +347,15 @@ class CloudEpisode:
             grid = DroneGrid(self.grid, nodes, self._is_alive, self.settings.round_timeout)
             driver = RoundDriver(grid, self.fl, len(nodes), self.history)
             new_state = driver.play(self.state, server_round)
-            if driver.history and driver.history[-1]["round"] == server_round:
+            if driver.history and driver.history[-1].server_round == server_round:
                 self.history = driver.history
                 result = driver.history[-1]
-                trained = {int(d): float(v) for d, v in result["train_loss"].items()}
-                rejected = tuple(result["rejected"])
+                trained = dict(result.train_loss)
+                rejected = result.rejected
                 if trained:
                     self.state = new_state
-                    weights = self._install(grid, server_round, nodes, result["bytes"])
+                    traffic = {"down": dict(result.bytes_down), "up": dict(result.bytes_up)}
+                    weights = self._install(grid, server_round, nodes, traffic)
         participants = tuple(sorted(trained))
         entry = DeployedRound(
             round=server_round,
