@@ -13,11 +13,11 @@ from dronefl.fl.simulation import run_federated
 
 
 def _trained(history):
-    return [sorted(int(d) for d in h["train_loss"]) for h in history]
+    return [sorted(int(d) for d in h.train_loss) for h in history]
 
 
 def _evaluated(history):
-    return [sorted(int(d) for d in h["test_mse"]) for h in history]
+    return [sorted(int(d) for d in h.test_mse) for h in history]
 
 
 @pytest.mark.slow
@@ -25,7 +25,7 @@ def test_fedprox_round_survives_a_crash_and_an_absurd_update(case1_run, tmp_path
     settings = FlSettings(str(case1_run), str(tmp_path), method="fedprox", rounds=4, epochs=1,
                           stride=5, faults="2:2:raise,3:1:absurd")  # fmt: skip
     history = run_federated(settings)
-    assert [h["rejected"] for h in history] == [
+    assert [list(h.rejected) for h in history] == [
         [],
         ["drone 2: error (drone 2: injected fault in round 2)"],
         ["drone 1: absurd weights (|w| > 10000)"],
@@ -33,7 +33,7 @@ def test_fedprox_round_survives_a_crash_and_an_absurd_update(case1_run, tmp_path
     ]
     assert _trained(history) == [[1, 2], [1], [2], [1, 2]]  # back in the round after
     assert _evaluated(history) == [[1, 2]] * 4  # a rejected update does not stop evaluation
-    assert all(math.isfinite(h["mean_test_mse"]) for h in history)
+    assert all(math.isfinite(h.mean_test_mse) for h in history)
 
 
 @pytest.mark.slow
@@ -43,7 +43,7 @@ def test_dronefl_round_survives_a_silent_drone_and_failed_evaluations(case1_run,
                           stride=5, round_timeout=8.0,
                           faults="2:2:hang,3:1:eval-raise,4:2:eval-nan")  # fmt: skip
     history = run_federated(settings)
-    assert [h["rejected"] for h in history] == [
+    assert [list(h.rejected) for h in history] == [
         [],
         ["drone 2: no reply within the round timeout"],
         ["drone 1: evaluation failed"],
