@@ -25,6 +25,7 @@ from dronefl.experiments.episode import (
     tracking_metrics,
 )
 from dronefl.results import load_result, save_result
+from dronefl.tracking import set_distances
 
 #: Wall-time budget of one step (the 5 Hz loop), ms.
 STEP_BUDGET_MS = 200.0
@@ -178,8 +179,9 @@ def deployment_metrics(
         seed=run.seed,
         environment=run.environment,
         detector="projection",
-        labels="tracks",
+        labels="smoothed",
         tracking=tracking_metrics(log, scenario),
+        set_distances=set_distances(log.target_position, log.track_position, scenario.dt),
         fl_rounds=rounds,
         communication=counter.rates(sim_seconds),
         sim_seconds=sim_seconds,

@@ -52,4 +52,4 @@ def test_dronefl_round_survives_a_silent_drone_and_failed_evaluations(case1_run,
     assert _trained(history) == [[1, 2], [1], [1, 2], [1, 2]]
     assert _evaluated(history) == [[1, 2], [1, 2], [2], [1]]
     # The mean test MSE is over the drones that reported.
-    assert history[3]["mean_test_mse"] == history[3]["test_mse"]["1"]
+    assert history[3].mean_test_mse == history[3].test_mse[1]
