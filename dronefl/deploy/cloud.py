@@ -61,6 +61,9 @@ from dronefl.planning import DroneFLPlanner
 from dronefl.tracking import Fuser, PositionMeasurement, make_labels
 from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
+#: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
+SUPERNODE_JOIN_S = 30.0
+
 DEPLOY_METHODS = ("dronefl", "fixed")
 _PREFIX = "deploy-"
 
@@ -339,6 +342,12 @@ class CloudEpisode:
                 ready.append(drone_id)
                 self.counter.add(drone_id, "down", "labels", len(payload))
         absent = self._refresh_nodes(ready)
+        # A drone that came back (restarted) is live before its new SuperNode has reached the
+        # SuperLink (which polls every few seconds): wait a little for it rather than leave it out.
+        deadline = time.monotonic() + SUPERNODE_JOIN_S
+        while absent and time.monotonic() < deadline:
+            time.sleep(1.0)
+            absent = self._refresh_nodes(ready)
         nodes = {self.nodes[d]: d for d in ready if d not in absent}  # node id -> drone
         trained: dict[int, float] = {}
         rejected: tuple[str, ...] = ()
