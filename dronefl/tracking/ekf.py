@@ -145,3 +145,14 @@ def _inv2(m: np.ndarray) -> np.ndarray:
     if not (det > 0 and m[0, 0] > 0):
         raise ValueError(f"innovation covariance S is not positive definite: {m.tolist()}")
     return np.array([[m[1, 1], -m[0, 1]], [-m[1, 0], m[0, 0]]]) / det
+
+
+def inv2_stack(m: np.ndarray) -> np.ndarray:
+    """Closed-form inverse of a stack of ``(..., 2, 2)`` matrices."""
+    det = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
+    inv = np.empty_like(m)
+    inv[..., 0, 0] = m[..., 1, 1]
+    inv[..., 1, 1] = m[..., 0, 0]
+    inv[..., 0, 1] = -m[..., 0, 1]
+    inv[..., 1, 0] = -m[..., 1, 0]
+    return inv / det[..., None, None]

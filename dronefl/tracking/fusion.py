@@ -18,7 +18,7 @@ from typing import Literal
 
 import numpy as np
 
-from dronefl.tracking.ekf import CHI2_2DOF_99, CHI2_2DOF_999
+from dronefl.tracking.ekf import CHI2_2DOF_99, CHI2_2DOF_999, inv2_stack
 from dronefl.tracking.methods import FUSION_METHODS
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
@@ -204,7 +204,7 @@ class TrackForecast:
         info = self._info[list(drone_indices), target_index].reshape(k, 4)
         lam = (bits @ info).reshape(-1, 2, 2)  # Lambda_A, (2^k, 2, 2)
         m = np.eye(2) + lam @ self._a[target_index]
-        s_inv = _inv2(m) @ lam  # S_A^-1, (2^k, 2, 2)
+        s_inv = inv2_stack(m) @ lam  # S_A^-1, (2^k, 2, 2)
         reduction = np.einsum("mij,ji->m", s_inv, self._btb[target_index])  # Tr(S^-1 B^T B)
         return self._prior_trace[target_index] - reduction
 
@@ -213,17 +213,6 @@ class TrackForecast:
         j = self.target_ids.index(target_id)
         idx = [self.drone_ids.index(i) for i in drone_ids]
         return float(self.trace_table(j, idx)[-1])
-
-
-def _inv2(m: np.ndarray) -> np.ndarray:
-    """Closed-form inverse of a stack of ``(..., 2, 2)`` matrices."""
-    det = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
-    inv = np.empty_like(m)
-    inv[..., 0, 0] = m[..., 1, 1]
-    inv[..., 1, 1] = m[..., 0, 0]
-    inv[..., 0, 1] = -m[..., 0, 1]
-    inv[..., 1, 0] = -m[..., 1, 0]
-    return inv / det[..., None, None]
 
 
 class Fuser:

@@ -141,17 +141,6 @@ def huber_second_moment(threshold: float, gate: float | None) -> float:
     return (core + tail) / (2.0 * accepted)
 
 
-def _inv2(m: np.ndarray) -> np.ndarray:
-    """Closed-form inverse of a stack of ``(..., 2, 2)`` matrices."""
-    det = m[..., 0, 0] * m[..., 1, 1] - m[..., 0, 1] * m[..., 1, 0]
-    inv = np.empty_like(m)
-    inv[..., 0, 0] = m[..., 1, 1]
-    inv[..., 1, 1] = m[..., 0, 0]
-    inv[..., 0, 1] = -m[..., 0, 1]
-    inv[..., 1, 0] = -m[..., 1, 0]
-    return inv / det[..., None, None]
-
-
 class RobustAdaptive(FusionMethod):
     r"""Adaptive-innovation EKF with Mahalanobis gating that survives real predictions.
 
