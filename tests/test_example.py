@@ -24,12 +24,10 @@ def test_the_readme_shows_the_example_file():
     assert source[start:].strip() in readme
 
 
-def test_a_detector_that_misses_half_its_detections_predicts_worse(
-    tmp_path, quick_pretrained_case1
-):
+def test_a_detector_that_misses_half_its_detections_predicts_worse(tmp_path, quick_pretrained):
     table = _example().compare(
         tmp_path, miss=0.5, duration=30.0, environment="crop_field", runtime="torch",
-        pretrained=quick_pretrained_case1, progress=False, animate=False,
+        pretrained=quick_pretrained, progress=False, animate=False,
     )  # fmt: skip
 
     paper = EpisodeMetrics.load(tmp_path / "paper" / "metrics.json")

@@ -74,7 +74,7 @@ def test_pseudo_labels_round_trip_and_alignment(tmp_path):
         shifted.for_log(record.to_log())
 
 
-def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained_case1, tmp_path):
+def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, tmp_path):
     config = TrackConfig(
         scenario=load_scenario("case1"),
         method="fixed",
@@ -82,7 +82,7 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained_c
         duration=40.0,
         environment="crop_field",
         runtime="torch",
-        pretrained=quick_pretrained_case1,
+        pretrained=quick_pretrained,
         out=tmp_path,
         progress=False,
     )
@@ -117,9 +117,9 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained_c
     assert again.tracking == metrics.tracking
 
 
-def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained_case1, tmp_path):
+def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, tmp_path):
     # Prepare: an (untrained) large cloud model in the cache; accuracy is not under test.
-    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(quick_pretrained_case1)
+    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(quick_pretrained)
     if not settings.checkpoint_path.is_file():
         model = build_model(predictor_config("large", 10, 1), seed=0)
         save_checkpoint(
@@ -129,7 +129,7 @@ def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained_c
         )
     config = TrackConfig(
         scenario=load_scenario("case1"), method="centralized", detector="yolo", seed=0,
-        duration=2.0, environment="crop_field", runtime="torch", pretrained=quick_pretrained_case1,
+        duration=2.0, environment="crop_field", runtime="torch", pretrained=quick_pretrained,
         out=tmp_path, progress=False, animate=False,
     )  # fmt: skip
     # Execute: 10 steps, every drone's frame rendered, JPEG-encoded, decoded and detected.
