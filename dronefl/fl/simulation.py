@@ -28,6 +28,10 @@ from dronefl.fl.server_app import RoundCallback, RoundDriver, build_server_app, 
 
 T = TypeVar("T")
 
+# Ray starts its workers at nice 15 by default, so on a shared machine a federated run starves
+# behind any other work; they run at the priority of the command that started them instead.
+os.environ.setdefault("RAY_worker_niceness", "0")
+
 
 #: Ray resources: two workers, one CPU each (the two drones' trainings run side by side),
 #: a small object store, no dashboard. Sized for a 2-core, 24 GiB machine.

@@ -361,10 +361,6 @@ class TrajectoryTransformer(nn.Module):
             y = self.head_adain(y, altitude)  # (B, L_f, d), gain and bias set by the altitude
         return self.head(y) * self.output_scale  # (B, L_f, 2) m
 
-    def personal_keys(self) -> tuple[str, ...]:
-        """State-dict keys of the output head, which FedPer keeps on the drone."""
-        return tuple(k for k in self.state_dict() if k.startswith(self.HEAD))
-
 
 def build_model(config: PredictorConfig, seed: int = 0) -> TrajectoryTransformer:
     """A freshly initialised model; the same ``seed`` gives the same weights."""

@@ -1,16 +1,19 @@
 """Any scenario through every closed-loop experiment: a custom 5-drone, 8-target scenario in a
 200 x 150 m field (mixed constant-speed and random-walk vehicles) is simulated, pretrained from
-an empty cache, flown by all three methods and tabulated; Table I reuses finished episodes."""
+an empty cache, flown by all three methods and tabulated; Table I reuses finished episodes;
+offline FL trains every drone of it."""
 
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeMetrics
+from dronefl.experiments.fl_offline import OfflineResults
 from dronefl.experiments.table1 import run_table1
 from dronefl.experiments.track import TRACK_METHODS, TrackConfig
 
@@ -35,6 +38,21 @@ def test_simulate_records_every_drone_of_the_custom_scenario(tmp_path):
         f"drone_{i}.npz" for i in range(1, 6)
     ]
     assert summary["sim_seconds"] == pytest.approx(10.0)
+
+
+def test_offline_fl_trains_every_drone_of_the_custom_scenario(tmp_path):
+    _invoke("fl-offline", "--scenario", str(SCENARIO), "--seeds", "0", "--rounds", "2",
+            "--methods", "dronefl,fedavg", "--duration", "40", "--stride", "5",
+            "--out", str(tmp_path))  # fmt: skip
+
+    results = OfflineResults.load(tmp_path / "results.json")
+    assert results.scenario == "farm_5x8" and results.rounds == 2
+    for method in ("dronefl", "fedavg"):
+        seed = results.methods[method].seed_result(0)
+        assert seed is not None and len(seed.mean_test_mse) == 2
+        assert sorted(seed.final_test_mse_per_drone) == [1, 2, 3, 4, 5]
+        assert all(np.isfinite(v) and v > 0 for v in seed.final_test_mse_per_drone.values())
+        assert all(b > 0 for b in seed.bytes_up_per_round)  # every round went over the wire
 
 
 @pytest.fixture(scope="module")
