@@ -73,7 +73,7 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
     # comes after round 1 (played after step 199, the drone dead then) and before round 2.
     gap = np.flatnonzero(silent)
     assert gap.size and (np.diff(gap) == 1).all(), gap
-    assert 125 <= gap[0] and 199 <= gap[-1] < 399, (gap[0], gap[-1])
+    assert gap[0] >= 125 and 199 <= gap[-1] < 399, (gap[0], gap[-1])
     assert metrics.silent_steps[2] == gap.size
     # The live drone may miss a 150 ms deadline now and then on a loaded machine, no more.
     assert metrics.silent_steps[1] <= 25
