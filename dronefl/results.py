@@ -5,9 +5,10 @@ loop, the traffic of a run, ...) is a frozen dataclass with its units in its fie
 :func:`to_json` turns such a dataclass into plain JSON values and :func:`from_json` builds it
 back from them, guided by the dataclass' type hints: nested dataclasses, tuples, dicts (JSON
 keys are strings; ``dict[int, ...]`` keys are turned back into ints), optional fields and
-:class:`~pathlib.Path` values. :func:`save_result` / :func:`load_result` write and read them
-atomically, and a file that does not hold the expected object raises :class:`ResultError`
-naming the file.
+:class:`~pathlib.Path` values. A field made with :func:`omitted_when_none` is left out of the
+JSON while it is None (a key that only some objects carry). :func:`save_result` /
+:func:`load_result` write and read them atomically, and a file that does not hold the expected
+object raises :class:`ResultError` naming the file.
 """
 
 from __future__ import annotations
@@ -23,17 +24,29 @@ from typing import Any, TypeVar
 from dronefl.io import atomic_write_json
 
 T = TypeVar("T")
+#: Field metadata key of :func:`omitted_when_none`.
+_OMIT_NONE = "dronefl.results.omit_none"
 
 
 class ResultError(ValueError):
     """A results file that is missing, corrupt or of another kind."""
 
 
+def omitted_when_none() -> Any:
+    """A dataclass field defaulting to None that :func:`to_json` leaves out while it is None;
+    :func:`from_json` gives None where its key is absent."""
+    return dataclasses.field(default=None, metadata={_OMIT_NONE: True})
+
+
 def to_json(value: Any) -> Any:
     """Plain JSON values for ``value`` (dataclasses become objects, tuples lists, Paths
     strings, non-finite floats ``None``)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_json(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {
+            f.name: to_json(getattr(value, f.name))
+            for f in dataclasses.fields(value)
+            if not (f.metadata.get(_OMIT_NONE) and getattr(value, f.name) is None)
+        }
     if isinstance(value, dict):
         return {str(k): to_json(v) for k, v in value.items()}
     if isinstance(value, list | tuple):

@@ -1,6 +1,6 @@
 """Performance benchmarks (paper Table II, SPEC §9): ``dronefl bench --out DIR``.
 
-Each module measures one part and returns plain dicts of figures (:mod:`~dronefl.bench.timing`):
+Each module measures one part and returns typed figures (:mod:`~dronefl.bench.results`):
 
 * :mod:`~dronefl.bench.simulator`: simulator speed;
 * :mod:`~dronefl.bench.predictor`: predictor inference per drone step, training per epoch;
@@ -9,6 +9,7 @@ Each module measures one part and returns plain dicts of figures (:mod:`~dronefl
 * :mod:`~dronefl.bench.closed_loop`: end-to-end Case 3 speed, DroneFL's communication;
 * :mod:`~dronefl.bench.bandwidth`: communication per drone, DroneFL and centralized;
 * :mod:`~dronefl.bench.energy`: RAPL readings or labelled estimates;
+* :mod:`~dronefl.bench.results`: the figures, the goals and ``bench.json`` as types;
 * goals, Table II and ``bench.md``: :mod:`dronefl.report.bench`;
 * :mod:`~dronefl.bench.run`: :func:`~dronefl.bench.run.run_bench`, the whole benchmark;
 * :mod:`~dronefl.bench.command`: the ``dronefl bench`` command.

@@ -11,10 +11,12 @@ with fp32 weights; a third episode, DroneFL with fp16 weights, gives it with fp1
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from time import perf_counter
 
 from dronefl.bench.bandwidth import dronefl_comm
+from dronefl.bench.results import Benchmarks, ClosedLoopFigure, EpisodeSpeed
 from dronefl.config import Scenario
 from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.track import TrackConfig, run_episode
@@ -23,23 +25,26 @@ from dronefl.fl.simulation import backend_config
 FL_PERIOD_S = 100.0
 
 
-def speed(metrics: EpisodeMetrics) -> dict:
-    """The speed figures of one episode's ``metrics``: real-time factor (x) with and without
-    the FL rounds, wall seconds, FL seconds and rounds, planner ms per step."""
-    return {
-        "realtime_factor": metrics.realtime_factor,
-        "realtime_factor_without_fl": metrics.sim_seconds
+def speed(what: str, metrics: EpisodeMetrics, call_seconds: float) -> EpisodeSpeed:
+    """The speed of episode ``what`` from its ``metrics``, ``call_seconds`` (s) the whole
+    :func:`run_episode` call: real-time factor (x) with and without the FL rounds, wall
+    seconds, FL seconds and rounds, planner ms per step."""
+    return EpisodeSpeed(
+        what=what,
+        realtime_factor=metrics.realtime_factor,
+        realtime_factor_without_fl=metrics.sim_seconds
         / (metrics.wall_seconds - metrics.fl_seconds),
-        "wall_seconds": metrics.wall_seconds,
-        "fl_seconds": metrics.fl_seconds,
-        "fl_rounds": len(metrics.fl_rounds),
-        "planner_ms_per_step": metrics.planner_ms_per_step,
-    }
+        wall_seconds=metrics.wall_seconds,
+        fl_seconds=metrics.fl_seconds,
+        fl_rounds=len(metrics.fl_rounds),
+        planner_ms_per_step=metrics.planner_ms_per_step,
+        call_seconds=call_seconds,
+    )
 
 
 def bench_closed_loop(
     scenario: Scenario, out: Path, duration: float, pretrained: Path
-) -> dict[str, dict]:
+) -> Benchmarks:
     """Run the ``fixed``, ``dronefl`` and ``dronefl`` with fp16 weights episodes of ``scenario``,
     ``duration`` s into ``out/fixed``, ``out/dronefl``, ``out/dronefl_fp16``:
 
@@ -67,31 +72,21 @@ def bench_closed_loop(
         started = perf_counter()
         metrics[name] = run_episode(config)
         calls[name] = perf_counter() - started
-    ours = {**speed(metrics["dronefl"]), "call_seconds": calls["dronefl"]}
-    fixed = {**speed(metrics["fixed"]), "call_seconds": calls["fixed"]}
+    what = (
+        f"{scenario.name} closed loop, orchard, projection detector, {duration:g} s, "
+        f"DroneFL with an FL round every {FL_PERIOD_S:g} s"
+    )
+    ours = speed(what, metrics["dronefl"], calls["dronefl"])
+    fixed = speed("the same episode with fixed models (no FL)", metrics["fixed"], calls["fixed"])
     workers = backend_config()["init_args"]["num_cpus"]
-    return {
-        "closed_loop": {
-            "what": (
-                f"{scenario.name} closed loop, orchard, projection detector, {duration:g} s, "
-                f"DroneFL with an FL round every {FL_PERIOD_S:g} s"
-            ),
-            "unit": "x real time",
-            **ours,
-            "threads": f"1 (torch, ONNX Runtime); FL rounds: {workers} Ray workers of 1 CPU",
-            "reference": {"what": "the same episode with fixed models (no FL)", **fixed},
-            "ratio": fixed["wall_seconds"] / ours["wall_seconds"],
-        },
-        "dronefl_comm": {
-            **dronefl_comm(metrics["dronefl"], FL_PERIOD_S),
-            "what": "DroneFL with fp32 weights: predictions up + controls down every step, "
-            "weights down + up every FL round",
-            "weights_dtype": "float32",
-        },
-        "dronefl_comm_fp16": {
-            **dronefl_comm(metrics["dronefl_fp16"], FL_PERIOD_S),
-            "what": "DroneFL with fp16 weights: predictions up + controls down every step, "
-            "weights down + up every FL round",
-            "weights_dtype": "float16",
-        },
-    }
+    return Benchmarks(
+        closed_loop=ClosedLoopFigure(
+            **asdict(ours),
+            unit="x real time",
+            threads=f"1 (torch, ONNX Runtime); FL rounds: {workers} Ray workers of 1 CPU",
+            reference=fixed,
+            ratio=fixed.wall_seconds / ours.wall_seconds,
+        ),
+        dronefl_comm=dronefl_comm(metrics["dronefl"], FL_PERIOD_S, "float32"),
+        dronefl_comm_fp16=dronefl_comm(metrics["dronefl_fp16"], FL_PERIOD_S, "float16"),
+    )

@@ -14,10 +14,12 @@ pass recorded for the smoother).
 
 from __future__ import annotations
 
+from dataclasses import replace
 from time import perf_counter
 
 import numpy as np
 
+from dronefl.bench.results import Benchmarks
 from dronefl.bench.timing import latency, with_reference
 from dronefl.config import Scenario
 from dronefl.experiments.track import fusion_config
@@ -125,7 +127,7 @@ def filterpy_fusion(
     return seconds, {j: kf.x.copy() for j, kf in filters.items()}
 
 
-def bench_cloud(scenario: Scenario, steps: int) -> dict[str, dict]:
+def bench_cloud(scenario: Scenario, steps: int) -> Benchmarks:
     """``scenario``, ``steps`` steps (>= 20): ``fusion`` per step (ms, with the filterpy reference
     when filterpy is installed) and ``planner`` per step (forecast + plan, ms)."""
     if steps < 2 * WARMUP_STEPS:
@@ -138,15 +140,15 @@ def bench_cloud(scenario: Scenario, steps: int) -> dict[str, dict]:
         f"adaptive EKF fusion ({config.method}), one {scenario.name} step "
         f"({per_step:.1f} measurements)"
     )
-    fusion = {**latency(what, fusion_s[kept], "ms", 1), "measurements_per_step": per_step}
+    fusion = replace(latency(what, fusion_s[kept], "ms", 1), measurements_per_step=per_step)
     try:
         reference = filterpy_fusion(stream, scenario.dt, config)[0][kept]
     except ImportError:
-        fusion["reference"] = None
+        pass  # no reference without filterpy
     else:
         fusion = with_reference(
             fusion, latency("filterpy KalmanFilter, same stream, fixed R", reference, "ms", 1)
         )
     what = f"DroneFL planner, one {scenario.name} step (forecast + plan)"
     planner = latency(what, plan_s[kept], "ms", 1)
-    return {"fusion": fusion, "planner": planner}
+    return Benchmarks(fusion=fusion, planner=planner)

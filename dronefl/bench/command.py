@@ -44,6 +44,6 @@ def bench(
     except BenchError as exc:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(code=2) from None
-    met = [g for g in results["goals"] if g["met"] is not None]
-    typer.echo(f"goals met: {sum(g['met'] for g in met)} of {len(met)} measured")
+    met = [g.met for g in results.goals if g.met is not None]
+    typer.echo(f"goals met: {sum(met)} of {len(met)} measured")
     typer.echo(f"wrote {out}/bench.json and {out}/bench.md")

@@ -6,7 +6,7 @@ read before and after ``calls`` calls of a workload. A reading covers the whole 
 includes idle cores and any other process; recent kernels let only root read the counters.
 
 *Estimate*, when there is no reading: energy = measured latency (s) x a stated device power (W),
-always labelled ``"kind": "estimate"`` with the power's source. The default powers are the
+always labelled ``kind = "estimate"`` with the power's source. The default powers are the
 Raspberry Pi 5's implied by the paper's own Table II (energy / latency of the same row):
 6.0 W while running YOLO (0.78 J per 0.13 s sample) and 8.0 W while training (14.11 J per
 1.76 s epoch). The transformer row (0.11 J per 0.01 s) is left out: its latency has one
@@ -22,10 +22,47 @@ from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter
 
+from dronefl.results import omitted_when_none
+
 #: Where Linux exposes RAPL.
 POWERCAP = Path("/sys/class/powercap")
-#: Measures the energy of ``calls`` calls of a function; returns a reading dict.
-EnergyMeter = Callable[[Callable[[], object], int], dict]
+
+
+@dataclass(frozen=True)
+class EnergyReading:
+    """A RAPL reading (``kind`` ``"reading"``): ``joules`` (J) per call over ``calls`` calls,
+    the package's ``mean_watts`` (W) meanwhile, and the counters it comes from."""
+
+    kind: str
+    joules: float
+    calls: int
+    mean_watts: float
+    source: str
+
+
+@dataclass(frozen=True)
+class EnergyEstimate:
+    """An estimate (``kind`` ``"estimate"``): ``joules`` (J) = ``latency_s`` (s) x ``watts``
+    (W), the stated power of the device named in ``power_source``."""
+
+    kind: str
+    joules: float
+    latency_s: float
+    watts: float
+    power_source: str
+
+
+@dataclass(frozen=True)
+class RaplStatus:
+    """Whether RAPL can be read: the readable ``zones`` if it is, else the ``reason``."""
+
+    available: bool
+    reason: str | None = omitted_when_none()
+    zones: tuple[str, ...] | None = omitted_when_none()
+
+
+#: Measures the energy of ``calls`` calls of a function.
+EnergyMeter = Callable[[Callable[[], object], int], EnergyReading]
 
 
 @dataclass(frozen=True)
@@ -48,18 +85,12 @@ RPI5_TRAINING = PowerFigure(
 )
 
 
-def estimate(latency_s: float, power: PowerFigure) -> dict:
+def estimate(latency_s: float, power: PowerFigure) -> EnergyEstimate:
     """Energy estimate ``joules = latency_s x power.watts`` (J) of one call lasting
     ``latency_s`` s on a device drawing ``power``, labelled as an estimate."""
     if not (math.isfinite(latency_s) and latency_s > 0):
         raise ValueError(f"latency must be a positive number of seconds, got {latency_s}")
-    return {
-        "kind": "estimate",
-        "joules": latency_s * power.watts,
-        "latency_s": latency_s,
-        "watts": power.watts,
-        "power_source": power.source,
-    }
+    return EnergyEstimate("estimate", latency_s * power.watts, latency_s, power.watts, power.source)
 
 
 def rapl_zones(root: Path = POWERCAP) -> list[Path]:
@@ -72,23 +103,23 @@ def rapl_zones(root: Path = POWERCAP) -> list[Path]:
     )
 
 
-def rapl_status(root: Path = POWERCAP) -> dict:
-    """``available`` and the readable zones, or the ``reason`` why there is no reading."""
+def rapl_status(root: Path = POWERCAP) -> RaplStatus:
+    """Whether the RAPL zones under ``root`` can be read, or the ``reason`` why not."""
     zones = rapl_zones(root)
     if not zones:
-        return {"available": False, "reason": f"not available: no RAPL zones under {root}"}
+        return RaplStatus(False, reason=f"not available: no RAPL zones under {root}")
     for zone in zones:
         try:
             int((zone / "energy_uj").read_text())
         except (OSError, ValueError) as exc:
-            return {"available": False, "reason": f"not available: {zone}/energy_uj ({exc})"}
-    return {"available": True, "zones": [str(zone) for zone in zones]}
+            return RaplStatus(False, reason=f"not available: {zone}/energy_uj ({exc})")
+    return RaplStatus(True, zones=tuple(str(zone) for zone in zones))
 
 
 def rapl_meter(root: Path = POWERCAP) -> EnergyMeter | None:
     """An :data:`EnergyMeter` reading the RAPL package counters under ``root``, or ``None``
     when :func:`rapl_status` says they are not available."""
-    if not rapl_status(root)["available"]:
+    if not rapl_status(root).available:
         return None
     zones = rapl_zones(root)
     ranges = [int((zone / "max_energy_range_uj").read_text()) for zone in zones]
@@ -96,7 +127,7 @@ def rapl_meter(root: Path = POWERCAP) -> EnergyMeter | None:
     def read() -> list[int]:
         return [int((zone / "energy_uj").read_text()) for zone in zones]
 
-    def measure(fn: Callable[[], object], calls: int) -> dict:
+    def measure(fn: Callable[[], object], calls: int) -> EnergyReading:
         before = read()
         started = perf_counter()
         for _ in range(calls):
@@ -108,12 +139,7 @@ def rapl_meter(root: Path = POWERCAP) -> EnergyMeter | None:
             a - b if a >= b else a + r - b for a, b, r in zip(after, before, ranges, strict=True)
         )
         joules = micro / 1e6
-        return {
-            "kind": "reading",
-            "joules": joules / calls,
-            "calls": calls,
-            "mean_watts": joules / wall,
-            "source": f"RAPL package energy ({', '.join(z.name for z in zones)}), whole package",
-        }
+        source = f"RAPL package energy ({', '.join(z.name for z in zones)}), whole package"
+        return EnergyReading("reading", joules / calls, calls, joules / wall, source)
 
     return measure

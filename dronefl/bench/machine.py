@@ -4,11 +4,34 @@ from __future__ import annotations
 
 import os
 import platform
+from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 #: Libraries whose versions change the figures.
 LIBRARIES: tuple[str, ...] = ("numpy", "torch", "onnxruntime", "flwr", "mujoco", "filterpy")
+
+
+@dataclass(frozen=True)
+class LoadAverage:
+    """The 1, 5 and 15 min load averages (runnable processes) at the ``start`` and the ``end``
+    of a benchmark run; None where the OS has none."""
+
+    start: tuple[float, ...] | None
+    end: tuple[float, ...] | None
+
+
+@dataclass(frozen=True)
+class MachineInfo:
+    """What the figures were measured on: CPU model, cores visible, OS, Python, the versions of
+    :data:`LIBRARIES` (None: not installed) and the load beside the run."""
+
+    cpu_model: str
+    cores_visible: int
+    platform: str
+    python: str
+    versions: dict[str, str | None]
+    load_average: LoadAverage
 
 
 def cpu_model(cpuinfo: Path = Path("/proc/cpuinfo")) -> str:
@@ -28,27 +51,23 @@ def cores_visible() -> int:
     return os.cpu_count() or 1
 
 
-def load_average() -> list[float] | None:
+def load_average() -> tuple[float, ...] | None:
     """The 1, 5 and 15 min load averages (runnable processes), None where the OS has none: on
     a shared machine they say how much else ran beside the benchmark."""
     try:
-        return [round(x, 2) for x in os.getloadavg()]
+        return tuple(round(x, 2) for x in os.getloadavg())
     except (AttributeError, OSError):
         return None
 
 
-def machine_info() -> dict:
-    """CPU model, cores visible, OS, Python and :data:`LIBRARIES` versions (None: missing)."""
-    versions = {}
+def machine_info(load: LoadAverage) -> MachineInfo:
+    """This machine, with the ``load`` measured beside the run."""
+    versions: dict[str, str | None] = {}
     for name in LIBRARIES:
         try:
             versions[name] = version(name)
         except PackageNotFoundError:
             versions[name] = None
-    return {
-        "cpu_model": cpu_model(),
-        "cores_visible": cores_visible(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "versions": versions,
-    }
+    return MachineInfo(
+        cpu_model(), cores_visible(), platform.platform(), platform.python_version(), versions, load
+    )

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import ParamSpec, TypeVar
 
@@ -18,6 +19,7 @@ import torch
 from torch import nn
 
 from dronefl.bench.energy import EnergyMeter
+from dronefl.bench.results import Benchmarks
 from dronefl.bench.timing import latency, time_interleaved, with_reference
 from dronefl.config import Scenario
 from dronefl.experiments.simulate import simulate
@@ -127,7 +129,7 @@ def _one_torch_thread(fn: Callable[P, R]) -> Callable[P, R]:
 @_one_torch_thread
 def bench_inference(
     step: dict, calls: int, rounds: int, measure_energy: EnergyMeter | None = None
-) -> dict[str, dict]:
+) -> Benchmarks:
     """Per drone step, features included, 1 thread, ms:
 
     * ``predictor_inference``: our model on ONNX Runtime (what the drones run), against the stock
@@ -160,35 +162,32 @@ def bench_inference(
     threads = torch.get_num_threads()
     what = f"one drone step, {n_targets} targets, features included"
     reference = latency("stock eager nn.Transformer* build", seconds["stock"], "ms", threads)
-    ours_figure = latency(f"{what}; ONNX Runtime", seconds["onnx"], "ms", 1)
-    result = {
-        "predictor_inference": {
-            **with_reference(ours_figure, reference),
-            "targets": n_targets,
-            "parameters": count_parameters(ours),
-            "reference_parameters": count_parameters(stock),
-            "other_runtimes": {
-                name: latency(f"{what}; our model, {name}", seconds[name], "ms", threads)
-                for name in ("torch", "torchscript")
-            },
+    ours_figure = replace(
+        with_reference(latency(f"{what}; ONNX Runtime", seconds["onnx"], "ms", 1), reference),
+        targets=n_targets,
+        parameters=count_parameters(ours),
+        reference_parameters=count_parameters(stock),
+        other_runtimes={
+            name: latency(f"{what}; our model, {name}", seconds[name], "ms", threads)
+            for name in ("torch", "torchscript")
         },
-        "centralized_inference": {
-            **latency(f"{what}; centralized large model, ONNX Runtime", seconds["large"], "ms", 1),
-            "targets": n_targets,
-            "parameters": count_parameters(large),
-        },
-    }
+    )
+    centralized = replace(
+        latency(f"{what}; centralized large model, ONNX Runtime", seconds["large"], "ms", 1),
+        targets=n_targets,
+        parameters=count_parameters(large),
+    )
     if measure_energy is not None:
         onnx = predictors["onnx"]
         reading = measure_energy(lambda: onnx.predict(**step), rounds * calls)
-        result["predictor_inference"]["energy_reading"] = reading
-    return result
+        ours_figure = replace(ours_figure, energy_reading=reading)
+    return Benchmarks(predictor_inference=ours_figure, centralized_inference=centralized)
 
 
 @_one_torch_thread
 def bench_training(
     data: WindowSet, rounds: int, measure_energy: EnergyMeter | None = None
-) -> dict[str, dict]:
+) -> Benchmarks:
     """One local epoch over ``data`` (Adam, batch 128, MSE), s, 1 thread:
 
     * ``training_epoch``: our model against the stock build;
@@ -217,19 +216,15 @@ def bench_training(
     threads = torch.get_num_threads()
     what = f"one epoch of {len(data)} windows, batch 128"
     reference = latency("stock eager nn.Transformer* build", seconds["stock"], "s", threads)
-    result = {
-        "training_epoch": {
-            **with_reference(
-                latency(f"{what}; our model", seconds["ours"], "s", threads), reference
-            ),
-            "windows": len(data),
-        },
-        "centralized_training_epoch": {
-            **latency(f"{what}; centralized large model", seconds["large"], "s", threads),
-            "windows": len(data),
-        },
-    }
+    ours = replace(
+        with_reference(latency(f"{what}; our model", seconds["ours"], "s", threads), reference),
+        windows=len(data),
+    )
+    centralized = replace(
+        latency(f"{what}; centralized large model", seconds["large"], "s", threads),
+        windows=len(data),
+    )
     if measure_energy is not None:
         reading = measure_energy(lambda: epoch(models["ours"], seed=0), rounds)
-        result["training_epoch"]["energy_reading"] = reading
-    return result
+        ours = replace(ours, energy_reading=reading)
+    return Benchmarks(training_epoch=ours, centralized_training_epoch=centralized)

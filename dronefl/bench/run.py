@@ -15,49 +15,25 @@ import dronefl.bench.vision  # noqa: F401  # isort: skip
 import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from rich.console import Console
 
 from dronefl.bench import bandwidth, closed_loop, cloud, predictor, simulator, vision
 from dronefl.bench.energy import EnergyMeter, rapl_meter, rapl_status
-from dronefl.bench.machine import load_average, machine_info
-from dronefl.config import Environment, Scenario, load_scenario
-from dronefl.io import atomic_write_json, atomic_write_text
+from dronefl.bench.machine import LoadAverage, load_average, machine_info
+from dronefl.bench.results import BenchEnergy, Benchmarks, BenchResults, BenchSizes
+from dronefl.config import Scenario, load_scenario
+from dronefl.io import atomic_write_text
 from dronefl.report.bench import energy_estimates, evaluate_goals, markdown, summary_line
+from dronefl.results import save_result
 
 SCHEMA_VERSION = 1
 
 
 class BenchError(ValueError):
     """Bad ``dronefl bench`` input, found before any benchmark runs."""
-
-
-@dataclass(frozen=True)
-class BenchSizes:
-    """How much each benchmark measures.
-
-    ``sim_seconds`` simulated s per environment in ``environments`` (simulator, frames);
-    ``record_seconds`` of Case 3 recorded for the predictor's data, of which
-    ``windows_per_target`` windows of each of drone 1's 6 targets are kept;
-    ``inference_calls`` x ``inference_rounds`` timed predictor calls per model;
-    ``training_rounds`` timed epochs per model; ``frames`` rendered per environment, spread
-    over ``flight_seconds`` s of flight; ``cloud_steps`` fusion and planner steps;
-    ``episode_seconds`` simulated s per closed-loop episode.
-    """
-
-    sim_seconds: float = 600.0
-    environments: tuple[Environment, ...] = ("crop_field", "orchard")
-    record_seconds: float = 600.0
-    windows_per_target: int = 500
-    inference_calls: int = 500
-    inference_rounds: int = 5
-    training_rounds: int = 5
-    frames: int = 100
-    flight_seconds: float = 600.0
-    cloud_steps: int = 500
-    episode_seconds: float = 600.0
 
 
 FULL = BenchSizes()
@@ -88,32 +64,29 @@ class BenchContext:
     scenario: Scenario
 
 
-def _predictor(ctx: BenchContext) -> dict[str, dict]:
+def _predictor(ctx: BenchContext) -> Benchmarks:
     s = ctx.sizes
     with tempfile.TemporaryDirectory(dir=ctx.work) as tmp:
         data, step = predictor.record_windows(
             ctx.scenario, Path(tmp), s.record_seconds, s.windows_per_target
         )
-    return {
-        **predictor.bench_inference(step, s.inference_calls, s.inference_rounds, ctx.meter),
-        **predictor.bench_training(data, s.training_rounds, ctx.meter),
-    }
+    inference = predictor.bench_inference(step, s.inference_calls, s.inference_rounds, ctx.meter)
+    return inference.merged(predictor.bench_training(data, s.training_rounds, ctx.meter))
 
 
-def _vision(ctx: BenchContext) -> dict[str, dict]:
+def _vision(ctx: BenchContext) -> Benchmarks:
     s = ctx.sizes
     frames = {
         env: vision.render_frames(ctx.scenario, env, s.frames, s.flight_seconds)
         for env in s.environments
     }
-    return {
-        **vision.bench_detector(frames, ctx.scenario.target_ids, ctx.meter),
-        "centralized_uplink": bandwidth.centralized_uplink(frames, ctx.scenario.rate_hz),
-    }
+    detector = vision.bench_detector(frames, ctx.scenario.target_ids, ctx.meter)
+    uplink = bandwidth.centralized_uplink(frames, ctx.scenario.rate_hz)
+    return replace(detector, centralized_uplink=uplink)
 
 
 #: Benchmark groups in the order they run (fast ones first).
-GROUPS: dict[str, Callable[[BenchContext], dict[str, dict]]] = {
+GROUPS: dict[str, Callable[[BenchContext], Benchmarks]] = {
     "cloud": lambda ctx: cloud.bench_cloud(ctx.scenario, ctx.sizes.cloud_steps),
     "simulator": lambda ctx: simulator.bench_simulator(
         ctx.scenario, ctx.sizes.sim_seconds, ctx.sizes.environments
@@ -148,7 +121,7 @@ def run_bench(
     progress: bool = True,
     sizes: BenchSizes | None = None,
     scenario: Scenario | None = None,
-) -> dict:
+) -> BenchResults:
     """Run the benchmark groups ``only`` (default: all) and write ``out/bench.json`` and
     ``out/bench.md``; returns what ``bench.json`` holds.
 
@@ -165,27 +138,27 @@ def run_bench(
     scenario = scenario or load_scenario("case3")
     ctx = BenchContext(sizes, out, Path(pretrained), rapl_meter(), scenario)
     started, wall, load = time.strftime("%Y-%m-%d %H:%M:%S %Z"), time.perf_counter(), load_average()
-    figures: dict[str, dict] = {}
+    benchmarks = Benchmarks()
     for group in groups:
         with console.status(f"benchmark: {group} ..."):
             measured = GROUPS[group](ctx)
         for name, figure in measured.items():
             console.print(summary_line(name, figure), markup=False, highlight=False, soft_wrap=True)
-        figures.update(measured)
+        benchmarks = benchmarks.merged(measured)
         # Written after every group: an interrupted run keeps what it measured.
-        results = {
-            "schema": SCHEMA_VERSION,
-            "quick": quick,
-            "scenario": scenario.name,
-            "started": started,
-            "wall_seconds": time.perf_counter() - wall,
-            "groups": list(groups[: groups.index(group) + 1]),
-            "sizes": {**asdict(sizes), "environments": list(sizes.environments)},
-            "machine": {**machine_info(), "load_average": {"start": load, "end": load_average()}},
-            "benchmarks": figures,
-            "energy": {"rapl": rapl_status(), "estimates": energy_estimates(figures)},
-            "goals": evaluate_goals(figures),
-        }
-        atomic_write_json(out / "bench.json", results)
+        results = BenchResults(
+            schema=SCHEMA_VERSION,
+            quick=quick,
+            scenario=scenario.name,
+            started=started,
+            wall_seconds=time.perf_counter() - wall,
+            groups=groups[: groups.index(group) + 1],
+            sizes=sizes,
+            machine=machine_info(LoadAverage(start=load, end=load_average())),
+            benchmarks=benchmarks,
+            energy=BenchEnergy(rapl_status(), energy_estimates(benchmarks)),
+            goals=evaluate_goals(benchmarks),
+        )
+        save_result(out / "bench.json", results)
         atomic_write_text(out / "bench.md", markdown(results))
     return results

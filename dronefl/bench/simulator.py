@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from time import perf_counter
 
+from dronefl.bench.results import Benchmarks, SimulatorFigure
 from dronefl.config import Environment, Scenario
 from dronefl.perception import make_detector
 from dronefl.sim.pilot import PilotController
@@ -30,18 +31,17 @@ def realtime_factor(scenario: Scenario, environment: Environment, duration: floa
 
 def bench_simulator(
     scenario: Scenario, duration: float, environments: tuple[Environment, ...]
-) -> dict[str, dict]:
+) -> Benchmarks:
     """``simulator``: ``scenario``'s real-time factor (x) in each of ``environments``,
     ``duration`` s each; ``min`` is the slowest environment's."""
     factors = {env: realtime_factor(scenario, env, duration) for env in environments}
-    return {
-        "simulator": {
-            "what": f"{scenario.name} simulator + projection detector + scripted pilot, "
-            "no file I/O",
-            "unit": "x real time",
-            "per_environment": factors,
-            "min": min(factors.values()),
-            "sim_seconds": duration,
-            "threads": 1,
-        }
-    }
+    return Benchmarks(
+        simulator=SimulatorFigure(
+            what=f"{scenario.name} simulator + projection detector + scripted pilot, no file I/O",
+            unit="x real time",
+            per_environment=factors,
+            min=min(factors.values()),
+            sim_seconds=duration,
+            threads=1,
+        )
+    )

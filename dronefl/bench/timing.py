@@ -1,17 +1,20 @@
-"""Timing helpers shared by every benchmark, and the figure dict they all return.
+"""Timing helpers shared by every benchmark, and the latency figure they all return.
 
-A *figure* is a plain dict: what was measured, its unit, the median and 95th percentile of the
-samples, how many samples, the threads used and, where a reference implementation was timed in
-the same run, the reference's figure and ``ratio = reference median / our median`` (> 1: ours is
-faster).
+A latency is summarised as a :class:`~dronefl.bench.results.BenchFigure`: what was measured,
+its unit, the median and 95th percentile of the samples, how many samples, the threads used and,
+where a reference implementation was timed in the same run, the reference's figure and
+``ratio = reference median / our median`` (> 1: ours is faster).
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
+from dataclasses import replace
 from time import perf_counter
 
 import numpy as np
+
+from dronefl.bench.results import BenchFigure
 
 #: Seconds per unit of the figures' units.
 UNITS: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
@@ -51,25 +54,26 @@ def time_interleaved(
     return {name: np.concatenate(parts) for name, parts in samples.items()}
 
 
-def latency(what: str, seconds: np.ndarray, unit: str, threads: int) -> dict:
-    """The figure of latency samples ``seconds`` (s), reported in ``unit`` (``s|ms|us``)."""
+def latency(what: str, seconds: np.ndarray, unit: str, threads: int) -> BenchFigure:
+    """The figure of latency samples ``seconds`` (s) of calls on ``threads`` threads, reported
+    in ``unit`` (``s|ms|us``)."""
     seconds = np.asarray(seconds, dtype=float)
     if seconds.size == 0 or not np.isfinite(seconds).all():
         raise ValueError(f"{what}: needs finite samples, got {seconds.size}")
     scale = UNITS[unit]
-    return {
-        "what": what,
-        "unit": unit,
-        "median": float(np.median(seconds)) / scale,
-        "p95": float(np.percentile(seconds, 95)) / scale,
-        "samples": int(seconds.size),
-        "threads": threads,
-    }
+    return BenchFigure(
+        what=what,
+        unit=unit,
+        median=float(np.median(seconds)) / scale,
+        p95=float(np.percentile(seconds, 95)) / scale,
+        samples=int(seconds.size),
+        threads=threads,
+    )
 
 
-def with_reference(figure: dict, reference: dict) -> dict:
+def with_reference(figure: BenchFigure, reference: BenchFigure) -> BenchFigure:
     """``figure`` with ``reference`` (a figure in the same unit) and ``ratio`` = reference
     median / our median attached: how many times faster ours is."""
-    if reference["unit"] != figure["unit"]:
-        raise ValueError(f"reference unit {reference['unit']} differs from {figure['unit']}")
-    return {**figure, "reference": reference, "ratio": reference["median"] / figure["median"]}
+    if reference.unit != figure.unit:
+        raise ValueError(f"reference unit {reference.unit} differs from {figure.unit}")
+    return replace(figure, reference=reference, ratio=reference.median / figure.median)

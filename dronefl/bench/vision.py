@@ -12,13 +12,14 @@ from __future__ import annotations
 # MuJoCo reads MUJOCO_GL at its first import: the renderer module sets it, so it goes first.
 from dronefl.perception.render import SceneRenderer  # isort: skip
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from itertools import cycle
 from time import perf_counter
 
 import numpy as np
 
 from dronefl.bench.energy import EnergyMeter
+from dronefl.bench.results import Benchmarks
 from dronefl.bench.timing import latency, time_calls
 from dronefl.config import Environment, Scenario
 from dronefl.perception.yolo import YoloDetector
@@ -71,7 +72,7 @@ def bench_detector(
     frames: dict[str, list[Frame]],
     target_ids: tuple[int, ...],
     measure_energy: EnergyMeter | None = None,
-) -> dict[str, dict]:
+) -> Benchmarks:
     """Per 640 x 640 frame, ms, of ``frames`` (per environment):
 
     * ``detector``: the shipped YOLO11n on ONNX Runtime, 1 intra-op thread, all frames of every
@@ -90,23 +91,21 @@ def bench_detector(
         all_seconds.append(seconds)
     render_all = [f.render_seconds for fs in frames.values() for f in fs]
     what = f"YOLO11n ONNX, one 640x640 frame (network input {detector.imgsz} px)"
-    result = {
-        "detector": {
-            **latency(what, np.concatenate(all_seconds), "ms", 1),
-            "per_environment": per_env,
-            "paper_ms": PAPER_DETECTOR_MS,
+    detector_figure = replace(
+        latency(what, np.concatenate(all_seconds), "ms", 1),
+        per_environment=per_env,
+        paper_ms=PAPER_DETECTOR_MS,
+    )
+    render = replace(
+        latency("MuJoCo render on the CPU, one 640x640 frame", render_all, "ms", 1),
+        per_environment={
+            env: latency(f"render, {env}", [f.render_seconds for f in fs], "ms", 1)
+            for env, fs in frames.items()
         },
-        "render": {
-            **latency("MuJoCo render on the CPU, one 640x640 frame", render_all, "ms", 1),
-            "per_environment": {
-                env: latency(f"render, {env}", [f.render_seconds for f in fs], "ms", 1)
-                for env, fs in frames.items()
-            },
-        },
-    }
+    )
     if measure_energy is not None:
         image = next(iter(frames.values()))[0].image
         calls = sum(len(fs) for fs in frames.values())
         reading = measure_energy(lambda: detector.detect_image(image), calls)
-        result["detector"]["energy_reading"] = reading
-    return result
+        detector_figure = replace(detector_figure, energy_reading=reading)
+    return Benchmarks(detector=detector_figure, render=render)

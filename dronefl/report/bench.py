@@ -1,7 +1,8 @@
 """The benchmark's goals, its Table II (ours beside the paper's) and ``bench.md``.
 
-Every function here reads the plain dict that :func:`dronefl.bench.run.run_bench` builds
-(``results["benchmarks"]`` holds one figure per name) and measures nothing.
+Every function here reads the :class:`~dronefl.bench.results.BenchResults` that
+:func:`dronefl.bench.run.run_bench` builds (or its :class:`~dronefl.bench.results.Benchmarks`)
+and measures nothing.
 """
 
 from __future__ import annotations
@@ -11,13 +12,30 @@ import operator
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from dronefl.bench.energy import RPI5_INFERENCE, RPI5_TRAINING, PowerFigure, estimate
+from dronefl.bench.energy import (
+    RPI5_INFERENCE,
+    RPI5_TRAINING,
+    EnergyEstimate,
+    PowerFigure,
+    estimate,
+)
+from dronefl.bench.results import (
+    BenchFigure,
+    Benchmarks,
+    BenchResults,
+    ClosedLoopFigure,
+    CommFigure,
+    Figure,
+    GoalResult,
+    SimulatorFigure,
+)
 from dronefl.bench.timing import UNITS
 
 
 @dataclass(frozen=True)
 class Goal:
-    """``value(figures)`` must be ``op`` (``<=`` or ``>=``) ``limit`` ``unit``."""
+    """Field ``key`` of benchmark ``figure`` (a :class:`Benchmarks` field) must be ``op``
+    (``<=`` or ``>=``) ``limit`` ``unit``."""
 
     name: str
     figure: str
@@ -25,6 +43,12 @@ class Goal:
     op: str
     limit: float
     unit: str
+
+    def value(self, benchmarks: Benchmarks) -> float:
+        """The measured value in ``unit``; NaN where it was not measured (no such figure, or
+        no FL round for ``at_fl_period``)."""
+        figure = getattr(benchmarks, self.figure)
+        return math.nan if figure is None else getattr(figure, self.key)
 
 
 #: Issue 6's goals (communication, predictor, detector, planner, closed loop) and the README's
@@ -65,21 +89,21 @@ def fmt(value: float | None, digits: int = 3) -> str:
     return f"{value:.{digits}g}"
 
 
-def evaluate_goals(figures: dict[str, dict]) -> list[dict]:
-    """Each goal with the measured value and ``met`` (None where the figure is missing)."""
-    rows = []
+def evaluate_goals(benchmarks: Benchmarks) -> tuple[GoalResult, ...]:
+    """Each goal with the measured value and ``met`` (None where the value is missing)."""
+    results = []
     for goal in GOALS:
-        value = figures.get(goal.figure, {}).get(goal.key)
-        rows.append(
-            {
-                "goal": goal.name,
-                "target": f"{goal.op} {fmt(goal.limit)} {goal.unit}",
-                "value": value,
-                "unit": goal.unit,
-                "met": None if value is None else _OPS[goal.op](value, goal.limit),
-            }
+        value = goal.value(benchmarks)
+        results.append(
+            GoalResult(
+                goal=goal.name,
+                target=f"{goal.op} {fmt(goal.limit)} {goal.unit}",
+                value=value,
+                unit=goal.unit,
+                met=None if math.isnan(value) else _OPS[goal.op](value, goal.limit),
+            )
         )
-    return rows
+    return tuple(results)
 
 
 #: Energy per call of (figure, device power): the detector, the predictor, a training epoch.
@@ -90,21 +114,20 @@ ENERGY_SOURCES: dict[str, tuple[str, PowerFigure]] = {
 }
 
 
-def seconds(figures: dict[str, dict], name: str) -> float | None:
-    """Median of latency figure ``name`` in s; None when it was not measured."""
-    figure = figures.get(name)
+def seconds(figure: BenchFigure | None) -> float | None:
+    """Median of latency ``figure`` in s; None when it was not measured."""
     if figure is None:
         return None
-    return figure["median"] * UNITS[figure["unit"]]
+    return figure.median * UNITS[figure.unit]
 
 
-def energy_estimates(figures: dict[str, dict]) -> dict[str, dict]:
+def energy_estimates(benchmarks: Benchmarks) -> dict[str, EnergyEstimate]:
     """Per-call energy estimates (J) of :data:`ENERGY_SOURCES` that were measured: median
     latency x the stated device power (:func:`dronefl.bench.energy.estimate`)."""
     return {
-        name: estimate(seconds(figures, figure), power)
+        name: estimate(seconds(getattr(benchmarks, figure)), power)
         for name, (figure, power) in ENERGY_SOURCES.items()
-        if figure in figures
+        if getattr(benchmarks, figure) is not None
     }
 
 
@@ -115,26 +138,26 @@ def _sum(label_a: str, a: float | None, label_b: str, b: float | None) -> str:
     return f"{fmt(a + b)} = {fmt(a)} ({label_a}) + {fmt(b)} ({label_b})"
 
 
-def _energy(results: dict, name: str) -> float | None:
+def _energy(results: BenchResults, name: str) -> float | None:
     """The reading (J) if RAPL gave one, else the estimate, else None."""
-    figure = ENERGY_SOURCES[name][0]
-    reading = results["benchmarks"].get(figure, {}).get("energy_reading")
-    if reading is not None:
-        return reading["joules"]
-    return results["energy"]["estimates"].get(name, {}).get("joules")
+    figure = getattr(results.benchmarks, ENERGY_SOURCES[name][0])
+    if figure is not None and figure.energy_reading is not None:
+        return figure.energy_reading.joules
+    estimated = results.energy.estimates.get(name)
+    return None if estimated is None else estimated.joules
 
 
-def table2(results: dict) -> list[tuple[str, str, str, str, str]]:
+def table2(results: BenchResults) -> list[tuple[str, str, str, str, str]]:
     """Rows (metric, paper centralized, paper DroneFL, ours centralized, ours DroneFL)."""
-    f = results["benchmarks"]
-    comm_c = f.get("centralized_uplink", {}).get("kb_per_s")
-    detector = seconds(f, "detector")
-    kind = "estimate" if not results["energy"]["rapl"]["available"] else "RAPL reading"
+    f = results.benchmarks
+    comm_c = f.centralized_uplink.kb_per_s if f.centralized_uplink else None
+    detector = seconds(f.detector)
+    kind = "estimate" if not results.energy.rapl.available else "RAPL reading"
     ours_comm = (
         " / ".join(
-            _comm_cell(f[name], label)
-            for name, label in (("dronefl_comm", "fp32"), ("dronefl_comm_fp16", "fp16"))
-            if name in f
+            _comm_cell(comm, label)
+            for comm, label in ((f.dronefl_comm, "fp32"), (f.dronefl_comm_fp16, "fp16"))
+            if comm is not None
         )
         or "—"
     )
@@ -143,8 +166,8 @@ def table2(results: dict) -> list[tuple[str, str, str, str, str]]:
         (
             "Infer. latency per sample (s)",
             *PAPER_TABLE2["inference_latency"],
-            _sum("Y.", detector, "T. large", seconds(f, "centralized_inference")),
-            _sum("Y.", detector, "T.", seconds(f, "predictor_inference")),
+            _sum("Y.", detector, "T. large", seconds(f.centralized_inference)),
+            _sum("Y.", detector, "T.", seconds(f.predictor_inference)),
         ),
         (
             f"Infer. energy per sample (J, {kind})",
@@ -155,8 +178,8 @@ def table2(results: dict) -> list[tuple[str, str, str, str, str]]:
         (
             "Train. latency per epoch (s)",
             *PAPER_TABLE2["training_latency"],
-            fmt(seconds(f, "centralized_training_epoch")),
-            fmt(seconds(f, "training_epoch")),
+            fmt(seconds(f.centralized_training_epoch)),
+            fmt(seconds(f.training_epoch)),
         ),
         (
             f"Train. energy per epoch (J, {kind})",
@@ -167,36 +190,40 @@ def table2(results: dict) -> list[tuple[str, str, str, str, str]]:
     ]
 
 
-def _comm_cell(comm: dict, label: str) -> str:
+def _comm_cell(comm: CommFigure, label: str) -> str:
     """DroneFL's KB/s at one round per FL period (the episode's average in brackets)."""
-    if comm.get("at_fl_period") is None:
-        return f"{fmt(comm['kb_per_s'])} {label} (no FL round)"
-    return f"{fmt(comm['at_fl_period'])} {label} (episode: {fmt(comm['kb_per_s'])})"
+    if math.isnan(comm.at_fl_period):
+        return f"{fmt(comm.kb_per_s)} {label} (no FL round)"
+    return f"{fmt(comm.at_fl_period)} {label} (episode: {fmt(comm.kb_per_s)})"
 
 
-def figure_row(name: str, figure: dict) -> tuple[str, str, str, str, str]:
+def _ratio(ratio: float | None) -> str:
+    return "" if ratio is None else fmt(ratio, 3) + "x"
+
+
+def figure_row(figure: Figure) -> tuple[str, str, str, str, str]:
     """(what, measured, threads, reference in the same run, ratio) of one figure."""
-    reference = figure.get("reference")
-    ratio = fmt(figure["ratio"], 3) + "x" if figure.get("ratio") is not None else ""
-    unit = figure["unit"]
-    if "median" in figure:
-        measured = f"{fmt(figure['median'])} {unit} (p95 {fmt(figure['p95'])})"
-        ref = f"{reference['what']}: {fmt(reference['median'])} {unit}" if reference else ""
-    elif name == "simulator":
-        measured = ", ".join(f"{fmt(v)}x ({env})" for env, v in figure["per_environment"].items())
-        ref = ""
-    elif name == "closed_loop":
-        measured = (
-            f"{fmt(figure['realtime_factor'])}x ({fmt(figure['realtime_factor_without_fl'])}x "
-            f"without the {figure['fl_rounds']} FL rounds)"
-        )
-        ref = f"{reference['what']}: {fmt(reference['realtime_factor'])}x"
-    else:  # communication
-        measured = f"{fmt(figure['kb_per_s'])} {unit}"
-        if figure.get("at_fl_period") is not None:
-            measured += f" ({fmt(figure['at_fl_period'])} at one round per 100 s)"
-        ref = f"paper: {fmt(figure['paper_kb_per_s'])} {unit}"
-    return figure["what"], measured, str(figure.get("threads", "")), ref, ratio
+    match figure:
+        case BenchFigure(reference=reference):
+            measured = f"{fmt(figure.median)} {figure.unit} (p95 {fmt(figure.p95)})"
+            ref = f"{reference.what}: {fmt(reference.median)} {figure.unit}" if reference else ""
+            return figure.what, measured, str(figure.threads), ref, _ratio(figure.ratio)
+        case SimulatorFigure():
+            measured = ", ".join(f"{fmt(v)}x ({env})" for env, v in figure.per_environment.items())
+            return figure.what, measured, str(figure.threads), "", ""
+        case ClosedLoopFigure(reference=reference):
+            measured = (
+                f"{fmt(figure.realtime_factor)}x ({fmt(figure.realtime_factor_without_fl)}x "
+                f"without the {figure.fl_rounds} FL rounds)"
+            )
+            ref = f"{reference.what}: {fmt(reference.realtime_factor)}x"
+            return figure.what, measured, figure.threads, ref, _ratio(figure.ratio)
+        case _:  # communication: an UplinkFigure or a CommFigure
+            measured = f"{fmt(figure.kb_per_s)} {figure.unit}"
+            if isinstance(figure, CommFigure) and not math.isnan(figure.at_fl_period):
+                measured += f" ({fmt(figure.at_fl_period)} at one round per 100 s)"
+            ref = f"paper: {fmt(figure.paper_kb_per_s)} {figure.unit}"
+            return figure.what, measured, "", ref, ""
 
 
 _TABLE2_NOTE = (
@@ -214,33 +241,33 @@ def _table(header: tuple[str, ...], rows: list[tuple[str, ...]]) -> str:
     return "\n".join(lines)
 
 
-def markdown(results: dict) -> str:
+def markdown(results: BenchResults) -> str:
     """``bench.md``: machine, figures, goals, energy and Table II."""
-    machine = results["machine"]
-    v = machine["versions"]
+    machine = results.machine
+    v = machine.versions
     parts = [
         "# dronefl bench",
         "",
-        f"{machine['cpu_model']}, {machine['cores_visible']} cores visible; torch {v['torch']}, "
+        f"{machine.cpu_model}, {machine.cores_visible} cores visible; torch {v['torch']}, "
         f"onnxruntime {v['onnxruntime']}, flwr {v['flwr']}, numpy {v['numpy']}. "
-        f"{results['started']}, {fmt(results['wall_seconds'])} s in all.",
+        f"{results.started}, {fmt(results.wall_seconds)} s in all.",
     ]
-    load = machine.get("load_average")
-    if load and load["start"] and load["end"]:
+    load = machine.load_average
+    if load.start and load.end:
         parts[-1] += (
-            f" Load average (1 min, runnable processes on the {machine['cores_visible']} cores):"
-            f" {load['start'][0]:g} at the start, {load['end'][0]:g} at the end."
+            f" Load average (1 min, runnable processes on the {machine.cores_visible} cores):"
+            f" {load.start[0]:g} at the start, {load.end[0]:g} at the end."
         )
-    if results["quick"]:
+    if results.quick:
         parts += ["", "**Quick run**: shrunk sizes, the figures are not representative."]
-    figures = results["benchmarks"]
+    figures = results.benchmarks
     parts += [
         "",
         "## Figures (ratio = reference time / our time)",
         "",
         _table(
             ("what", "measured (median, p95)", "threads", "reference in the same run", "ratio"),
-            [figure_row(name, fig) for name, fig in figures.items()],
+            [figure_row(figure) for _, figure in figures.items()],
         ),
         "",
         "## Goals",
@@ -249,24 +276,24 @@ def markdown(results: dict) -> str:
             ("goal", "target", "measured", "met"),
             [
                 (
-                    g["goal"],
-                    g["target"],
-                    f"{fmt(g['value'])} {g['unit']}",
-                    {True: "yes", False: "**no**", None: "not measured"}[g["met"]],
+                    g.goal,
+                    g.target,
+                    f"{fmt(g.value)} {g.unit}",
+                    {True: "yes", False: "**no**", None: "not measured"}[g.met],
                 )
-                for g in results["goals"]
+                for g in results.goals
             ],  # fmt: skip
         ),
         "",
         "## Energy",
         "",
-        f"RAPL: {results['energy']['rapl'].get('reason', 'available')}.",
+        f"RAPL: {results.energy.rapl.reason or 'available'}.",
         "",
         _table(
             ("per call", "latency (s)", "power (W)", "energy estimate (J)", "power source"),
             [
-                (name, fmt(e["latency_s"]), fmt(e["watts"], 2), fmt(e["joules"]), e["power_source"])
-                for name, e in results["energy"]["estimates"].items()
+                (name, fmt(e.latency_s), fmt(e.watts, 2), fmt(e.joules), e.power_source)
+                for name, e in results.energy.estimates.items()
             ],
         ),
         "",
@@ -288,15 +315,17 @@ def markdown(results: dict) -> str:
             table2(results),
         ),
         "",
-        _TABLE2_NOTE.format(windows=figures.get("training_epoch", {}).get("windows", "the")),
+        _TABLE2_NOTE.format(
+            windows=figures.training_epoch.windows if figures.training_epoch else "the"
+        ),
         "",
     ]
     return "\n".join(parts)
 
 
-def summary_line(name: str, figure: dict) -> str:
+def summary_line(name: str, figure: Figure) -> str:
     """One line for the console after benchmark figure ``name`` was measured."""
-    what, measured, threads, ref, ratio = figure_row(name, figure)
+    _, measured, threads, ref, ratio = figure_row(figure)
     line = f"{name}: {measured}"
     if threads:
         line += f" [threads: {threads}]"

@@ -1,5 +1,6 @@
 """Communication figures by hand: the centralized JPEG uplink and DroneFL's bytes."""
 
+import math
 from types import SimpleNamespace
 
 import numpy as np
@@ -27,11 +28,11 @@ def test_centralized_uplink_is_message_bytes_times_rate_per_drone():
 
     sizes = [len(encode_jpeg(f.image, DEFAULT_JPEG_QUALITY)) for f in frames["crop_field"][:2]]
     drone_1 = ODOMETRY_BYTES + np.mean(sizes)
-    crop = uplink["per_environment"]["crop_field"]
-    assert crop["drones"]["1"] == pytest.approx(drone_1 * 5.0 / 1000)
-    assert crop["kb_per_s"] == pytest.approx(np.mean(list(crop["drones"].values())))
-    assert uplink["environment"] == "orchard"  # the deployment environment is the headline
-    assert uplink["kb_per_s"] == uplink["per_environment"]["orchard"]["kb_per_s"]
+    crop = uplink.per_environment["crop_field"]
+    assert crop.drones[1] == pytest.approx(drone_1 * 5.0 / 1000)
+    assert crop.kb_per_s == pytest.approx(np.mean(list(crop.drones.values())))
+    assert uplink.environment == "orchard"  # the deployment environment is the headline
+    assert uplink.kb_per_s == uplink.per_environment["orchard"].kb_per_s
 
 
 def _metrics(rounds: int) -> SimpleNamespace:
@@ -49,14 +50,15 @@ def _metrics(rounds: int) -> SimpleNamespace:
 
 
 def test_dronefl_comm_rescales_the_rounds_to_one_per_period():
-    comm = dronefl_comm(_metrics(rounds=5), fl_period=100.0)
+    comm = dronefl_comm(_metrics(rounds=5), fl_period=100.0, weights_dtype="float16")
 
-    assert comm["kb_per_s"] == pytest.approx(0.27 + 2 * 0.5)  # 5 rounds x 120 kB in 600 s
-    assert comm["weights_kb_per_round"] == pytest.approx(120.0)
-    assert comm["at_fl_period"] == pytest.approx(0.27 + 1.2)  # one 120 kB round per 100 s
-    assert comm["by_type"]["up:predictions"] == pytest.approx(0.2)
+    assert comm.kb_per_s == pytest.approx(0.27 + 2 * 0.5)  # 5 rounds x 120 kB in 600 s
+    assert comm.weights_kb_per_round == pytest.approx(120.0)
+    assert comm.at_fl_period == pytest.approx(0.27 + 1.2)  # one 120 kB round per 100 s
+    assert comm.by_type["up:predictions"] == pytest.approx(0.2)
+    assert comm.what.startswith("DroneFL with fp16 weights") and comm.weights_dtype == "float16"
 
 
 def test_dronefl_comm_without_a_round_has_no_per_period_figure():
-    comm = dronefl_comm(_metrics(rounds=0), fl_period=100.0)
-    assert comm["at_fl_period"] is None and comm["kb_per_s"] == pytest.approx(0.27)
+    comm = dronefl_comm(_metrics(rounds=0), fl_period=100.0, weights_dtype="float32")
+    assert math.isnan(comm.at_fl_period) and comm.kb_per_s == pytest.approx(0.27)

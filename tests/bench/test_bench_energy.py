@@ -20,9 +20,9 @@ def test_estimate_is_latency_times_stated_power():
 
     energy = estimate(0.25, power)
 
-    assert energy["joules"] == pytest.approx(1.5)
-    assert energy["kind"] == "estimate"
-    assert energy["power_source"] == "a stated device"
+    assert energy.joules == pytest.approx(1.5)
+    assert energy.kind == "estimate"
+    assert energy.power_source == "a stated device"
 
 
 def test_default_powers_are_the_papers_energy_over_latency():
@@ -40,7 +40,7 @@ def test_estimate_rejects_a_non_positive_latency(latency_s):
 
 def test_no_rapl_zones_means_no_reading(tmp_path):
     status = rapl_status(tmp_path)
-    assert status["available"] is False and "not available" in status["reason"]
+    assert status.available is False and "not available" in status.reason
     assert rapl_meter(tmp_path) is None
 
 
@@ -66,6 +66,7 @@ def test_rapl_reading_is_the_package_counter_difference_per_call(tmp_path, start
     reading = meter(workload, 4)
 
     assert [z.name for z in rapl_zones(tmp_path)] == ["intel-rapl:0"]
-    assert reading["kind"] == "reading"
-    assert reading["joules"] == pytest.approx(250e-6)
-    assert reading["calls"] == 4
+    assert rapl_status(tmp_path).zones == (str(package),)
+    assert reading.kind == "reading"
+    assert reading.joules == pytest.approx(250e-6)
+    assert reading.calls == 4

@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from dronefl.bench.cloud import bench_cloud, filterpy_fusion, fly
+from dronefl.bench.energy import EnergyReading
 from dronefl.bench.predictor import bench_inference, bench_training, record_windows
+from dronefl.bench.results import BenchFigure
 from dronefl.bench.simulator import bench_simulator
 from dronefl.bench.timing import UNITS
 from dronefl.bench.vision import bench_detector, render_frames
@@ -16,13 +18,13 @@ from dronefl.config import load_scenario
 from dronefl.tracking import Fuser, FusionConfig
 
 
-def _measured(figure: dict, samples: int, elapsed: float) -> None:
+def _measured(figure: BenchFigure, samples: int, elapsed: float) -> None:
     """``figure`` summarises ``samples`` timings that all happened within ``elapsed`` s: at
     least half of them last the median or longer, so (samples / 2) x median <= elapsed."""
-    assert figure["samples"] == samples
-    median_s = figure["median"] * UNITS[figure["unit"]]
+    assert figure.samples == samples
+    median_s = figure.median * UNITS[figure.unit]
     assert median_s > 0 and samples / 2 * median_s <= elapsed
-    assert figure["median"] <= figure["p95"]
+    assert figure.median <= figure.p95
 
 
 def test_filterpy_reference_is_our_fusion_without_adaptation_or_gating():
@@ -66,22 +68,23 @@ def test_recorded_windows_and_step_have_drone_1s_six_targets(recorded):
 def test_inference_figures_with_the_stock_reference(recorded):
     _, step = recorded
     readings = []
+    reading = EnergyReading("reading", 1.0, 6, 5.0, "a fake meter")
 
     started = perf_counter()
     figures = bench_inference(
-        step, calls=3, rounds=2, measure_energy=lambda fn, n: readings.append(n) or {"joules": 1.0}
+        step, calls=3, rounds=2, measure_energy=lambda fn, n: readings.append(n) or reading
     )
     elapsed = perf_counter() - started
 
-    ours = figures["predictor_inference"]
-    for figure in (ours, ours["reference"], figures["centralized_inference"]):
+    ours = figures.predictor_inference
+    for figure in (ours, ours.reference, figures.centralized_inference):
         _measured(figure, samples=6, elapsed=elapsed)
-    assert ours["threads"] == 1 and ours["targets"] == 6
+    assert ours.threads == 1 and ours.targets == 6
     # ONNX Runtime runs the step faster than the stock eager build (README: 3.2x).
-    assert ours["ratio"] > 1
-    assert set(ours["other_runtimes"]) == {"torch", "torchscript"}
-    assert ours["parameters"] < figures["centralized_inference"]["parameters"]
-    assert readings == [6] and ours["energy_reading"] == {"joules": 1.0}
+    assert ours.ratio > 1
+    assert set(ours.other_runtimes) == {"torch", "torchscript"}
+    assert ours.parameters < figures.centralized_inference.parameters
+    assert readings == [6] and ours.energy_reading == reading
 
 
 def test_training_figures_with_the_stock_reference(recorded):
@@ -90,10 +93,10 @@ def test_training_figures_with_the_stock_reference(recorded):
     figures = bench_training(data, rounds=2)
     elapsed = perf_counter() - started
 
-    ours = figures["training_epoch"]
-    for figure in (ours, ours["reference"], figures["centralized_training_epoch"]):
+    ours = figures.training_epoch
+    for figure in (ours, ours.reference, figures.centralized_training_epoch):
         _measured(figure, samples=2, elapsed=elapsed)
-    assert ours["windows"] == len(data) == 30 and ours["unit"] == "s"
+    assert ours.windows == len(data) == 30 and ours.unit == "s"
     # (No claim on the ratio here: on 30 windows an epoch lasts milliseconds, and on a shared
     # machine two samples of that are noise; the README's 1.33x is from 3000 windows.)
 
@@ -106,15 +109,15 @@ def test_detector_on_rendered_case3_frames():
     assert {f.image.shape for f in frames} == {(640, 640, 3)}
     started = perf_counter()
     figures = bench_detector({"crop_field": frames}, scenario.target_ids)
-    _measured(figures["detector"], samples=4, elapsed=perf_counter() - started)
+    _measured(figures.detector, samples=4, elapsed=perf_counter() - started)
     # Rendering was timed while the frames were made: each frame's own render time.
     renders = sorted(f.render_seconds for f in frames)
-    assert figures["render"]["median"] == pytest.approx(1e3 * np.median(renders))
-    assert figures["detector"]["samples"] == 4 and figures["detector"]["threads"] == 1
-    assert set(figures["detector"]["per_environment"]) == {"crop_field"}
+    assert figures.render.median == pytest.approx(1e3 * np.median(renders))
+    assert figures.detector.samples == 4 and figures.detector.threads == 1
+    assert set(figures.detector.per_environment) == {"crop_field"}
 
 
 def test_simulator_reports_each_environment_and_the_slowest():
     scenario = load_scenario("case3")
-    figure = bench_simulator(scenario, 2.0, ("crop_field", "orchard"))["simulator"]
-    assert figure["min"] == min(figure["per_environment"].values()) > 0
+    figure = bench_simulator(scenario, 2.0, ("crop_field", "orchard")).simulator
+    assert figure.min == min(figure.per_environment.values()) > 0

@@ -10,8 +10,10 @@ from typer.testing import CliRunner
 from dronefl.bench import run
 from dronefl.bench.cloud import WARMUP_STEPS
 from dronefl.bench.command import bench
+from dronefl.bench.results import Benchmarks, BenchResults
 from dronefl.bench.run import BenchError, run_bench
 from dronefl.bench.timing import latency
+from dronefl.results import load_result
 
 
 @pytest.fixture
@@ -22,7 +24,7 @@ def stub_groups(monkeypatch):
     def group(name):
         def measure(ctx):
             ran.append(name)
-            return {name: latency(name, [1e-3, 2e-3, 3e-3], "ms", 1)}
+            return Benchmarks(**{name: latency(name, [1e-3, 2e-3, 3e-3], "ms", 1)})
 
         return measure
 
@@ -61,11 +63,12 @@ def test_run_bench_writes_json_and_markdown(tmp_path, stub_groups):
     results = run_bench(tmp_path / "bench", quick=True, progress=False)
 
     written = json.loads((tmp_path / "bench" / "bench.json").read_text())
-    assert written == results
+    assert load_result(BenchResults, tmp_path / "bench" / "bench.json") == results
     assert stub_groups == ["planner", "detector"]
-    assert {"schema", "quick", "machine", "benchmarks", "energy", "goals", "sizes"} <= set(results)
-    assert results["machine"]["cores_visible"] >= 1 and results["machine"]["cpu_model"]
-    assert results["energy"]["estimates"]["detector"]["kind"] == "estimate"
+    assert {"schema", "quick", "machine", "benchmarks", "energy", "goals", "sizes"} <= set(written)
+    assert list(written["benchmarks"]) == ["planner", "detector"]
+    assert results.machine.cores_visible >= 1 and results.machine.cpu_model
+    assert results.energy.estimates["detector"].kind == "estimate"
     assert "## Table II" in (tmp_path / "bench" / "bench.md").read_text()
     assert sorted(p.name for p in (tmp_path / "bench").iterdir()) == ["bench.json", "bench.md"]
 
@@ -75,13 +78,13 @@ def test_quick_cloud_group_measures_fusion_and_planner(tmp_path):
     results = run_bench(tmp_path, quick=True, only=("cloud",), progress=False)
     elapsed = perf_counter() - started
 
-    fusion, planner = results["benchmarks"]["fusion"], results["benchmarks"]["planner"]
-    steps = results["sizes"]["cloud_steps"] - WARMUP_STEPS  # the warm-up steps are not timed
-    for figure in (fusion, planner, fusion["reference"]):
-        assert figure["unit"] == "ms" and figure["threads"] == 1 and figure["samples"] == steps
+    fusion, planner = results.benchmarks.fusion, results.benchmarks.planner
+    steps = results.sizes.cloud_steps - WARMUP_STEPS  # the warm-up steps are not timed
+    for figure in (fusion, planner, fusion.reference):
+        assert figure.unit == "ms" and figure.threads == 1 and figure.samples == steps
         # Half the steps take the median or longer, and all of them ran within `elapsed`.
-        assert 0 < steps / 2 * figure["median"] * 1e-3 <= elapsed
-        assert figure["median"] <= figure["p95"]
-    assert results["groups"] == ["cloud"]
-    planner_goal = next(g for g in results["goals"] if g["goal"].startswith("planner"))
-    assert planner_goal["value"] == planner["median"] and planner_goal["met"] is not None
+        assert 0 < steps / 2 * figure.median * 1e-3 <= elapsed
+        assert figure.median <= figure.p95
+    assert results.groups == ("cloud",)
+    planner_goal = next(g for g in results.goals if g.goal.startswith("planner"))
+    assert planner_goal.value == planner.median and planner_goal.met is not None

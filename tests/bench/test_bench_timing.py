@@ -1,4 +1,4 @@
-"""Timing helpers: the figure dict, the reference ratio, interleaved calls."""
+"""Timing helpers: the latency figure, the reference ratio, interleaved calls."""
 
 import numpy as np
 import pytest
@@ -11,9 +11,10 @@ def test_latency_reports_median_and_p95_in_the_unit():
 
     figure = latency("five calls", seconds, "ms", threads=1)
 
-    assert figure["median"] == pytest.approx(3.0)
-    assert figure["p95"] == pytest.approx(4.8)  # 4 + 0.8 x (5 - 4), linear interpolation
-    assert (figure["unit"], figure["samples"], figure["threads"]) == ("ms", 5, 1)
+    assert figure.median == pytest.approx(3.0)
+    assert figure.p95 == pytest.approx(4.8)  # 4 + 0.8 x (5 - 4), linear interpolation
+    assert (figure.unit, figure.samples, figure.threads) == ("ms", 5, 1)
+    assert figure.reference is None and figure.ratio is None
 
 
 @pytest.mark.parametrize("seconds", [[], [1.0, np.nan]])
@@ -28,8 +29,8 @@ def test_ratio_is_reference_over_ours():
 
     figure = with_reference(ours, reference)
 
-    assert figure["ratio"] == pytest.approx(2.5)
-    assert figure["reference"]["median"] / figure["median"] == pytest.approx(figure["ratio"])
+    assert figure.ratio == pytest.approx(2.5)  # 5 ms / 2 ms
+    assert figure.reference == reference and figure.median == pytest.approx(2.0)
     with pytest.raises(ValueError, match="unit"):
         with_reference(ours, latency("stock", np.full(3, 5e-3), "s", 1))
 
