@@ -528,14 +528,19 @@ def track(
     pretrain_rounds: PretrainRoundsOption = 20,
     pretrain_seconds: PretrainSecondsOption = 600.0,
     out: OutOption = Path("runs/track"),
+    animate: Annotated[bool, typer.Option(help="Also write episode.gif.")] = True,
+    resume: ResumeOption = False,
 ) -> None:
     """Closed-loop tracking: detect, predict, fuse, plan every 0.2 s; an FL round every 100 s.
 
-    Writes metrics.json, episode.npz, trajectories.png, timeseries.png and episode.gif.
+    Writes metrics.json, episode.npz, trajectories.png, timeseries.png and episode.gif, and a
+    checkpoint.pkl after every FL period (--resume continues a killed episode from it).
     Example: dronefl track --scenario case2 --method dronefl --seed 0 --duration 600 --out runs/c2
     """
     from dronefl.experiments.track import run_episode
+    from dronefl.fl.checkpoint import CheckpointError
     from dronefl.report.tables import format_metrics
+    from dronefl.results import ResultError
 
     check_choice(env, ENVIRONMENTS, "--env")
     check_choice(detector, DETECTORS, "--detector")
@@ -555,8 +560,13 @@ def track(
         pretrain_rounds=pretrain_rounds,
         pretrain_seconds=pretrain_seconds,
         out=out,
+        animate=animate,
+        resume=resume,
     )
-    metrics = run_episode(config)
+    try:
+        metrics = run_episode(config)
+    except (CheckpointError, ResultError) as exc:  # a corrupt or foreign file in --out
+        raise fail(str(exc)) from None
     typer.echo(format_metrics(metrics))
     typer.echo(f"wrote {out}/ (metrics.json, trajectories.png, timeseries.png, episode.gif)")
 

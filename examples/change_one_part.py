@@ -35,6 +35,16 @@ class MissingDetector(Detector):
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         return tuple(d for d in self.inner.detect(view) if self.rng.random() >= self.miss)
 
+    def state(self) -> tuple[object, dict]:
+        """Both random streams, so that a resumed episode (``dronefl track --resume``)
+        continues them."""
+        return self.inner.state(), self.rng.bit_generator.state
+
+    def restore(self, state: tuple[object, dict]) -> None:
+        inner, own = state
+        self.inner.restore(inner)
+        self.rng.bit_generator.state = own
+
 
 def compare(out: Path, miss: float = 0.5, duration: float = 120.0, **settings) -> str:
     """The same Case 1 episode with the paper's detector and with ``miss`` of its detections

@@ -1,10 +1,19 @@
-"""Test-wide settings (headless plotting, tool caches inside a temp dir, no telemetry) and the
-shared fixture of a quickly pretrained Case 1 model."""
+"""Test-wide settings (headless plotting, tool caches inside a temp dir, no telemetry), the
+shared fixture of a quickly pretrained Case 1 model, and ``cli_process``, which runs the
+``dronefl`` command in child processes and checks that every process they started is gone at
+the end (the kill/resume tests)."""
 
+import contextlib
+import ctypes
+import multiprocessing
 import os
+import signal
 import tempfile
+import time
 
+import psutil
 import pytest
+from cli_child import run_dronefl
 
 _CACHE = tempfile.mkdtemp(prefix="dronefl-test-cache-")
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -58,3 +67,67 @@ def quick_pretrained(tmp_path_factory):
         Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
     )
     return folder
+
+
+PR_SET_CHILD_SUBREAPER = 36
+#: Children are forked from a server that has imported the CLI once (a fresh interpreter per
+#: run would spend most of the test importing torch; Adam imports torch._dynamo on first use).
+_SERVER = multiprocessing.get_context("forkserver")
+_SERVER.set_forkserver_preload(
+    ["dronefl.cli", "dronefl.experiments.fl_offline", "dronefl.experiments.track", "torch._dynamo"]
+)
+
+
+def _adopt_orphans() -> None:
+    """Make this process the reaper of its descendants' orphans (Linux ``prctl``). A killed run's
+    Ray processes are orphaned; where PID 1 never reaps (as in some containers) the dead raylet
+    would stay a zombie, which Ray's agents take for a live parent, and never exit."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)
+
+
+def _running(process: psutil.Process) -> bool:
+    """Alive (a zombie that was our orphan is reaped here; any other zombie counts as gone)."""
+    try:
+        if process.status() == psutil.STATUS_ZOMBIE:
+            with contextlib.suppress(ChildProcessError):
+                os.waitpid(process.pid, os.WNOHANG)
+            return False
+        return process.is_running()
+    except psutil.NoSuchProcess:
+        return False
+
+
+@pytest.fixture
+def cli_process():
+    """``cli_process(argv, crash_at=None)`` runs ``dronefl ARGV`` in a child process, with
+    ``DRONEFL_CRASH_AT=crash_at`` when given (:mod:`dronefl.io`), and returns its exit code (0,
+    or ``-SIGKILL`` for a run that killed itself). At the end every process the runs started
+    (Ray's included) must have exited by itself.
+
+    After a SIGKILL, Ray's raylet, GCS and workers go within seconds; its dashboard and
+    runtime-env agents first try to tell the dead GCS (a 60 s RPC timeout in Ray 2.55), so the
+    check waits up to 150 s after the last run, while the other runs of the test go on."""
+    seen: dict[int, psutil.Process] = {}
+
+    def run(argv: list[str], crash_at: str | None = None) -> int:
+        _adopt_orphans()
+        child = _SERVER.Process(target=run_dronefl, args=(argv, crash_at))
+        child.start()
+        while child.exitcode is None:
+            try:
+                for p in psutil.Process(child.pid).children(recursive=True):
+                    seen.setdefault(p.pid, p)
+            except psutil.NoSuchProcess:
+                pass
+            time.sleep(0.2)
+        child.join()
+        assert child.exitcode in (0, -signal.SIGKILL), f"{argv[0]} exited {child.exitcode}"
+        return child.exitcode
+
+    yield run
+    deadline = time.monotonic() + 150
+    while (alive := [p for p in seen.values() if _running(p)]) and time.monotonic() < deadline:
+        time.sleep(0.5)
+    for p in alive:  # clean up before failing
+        p.kill()
+    assert not alive, f"left running: {[p.name() for p in alive]}"

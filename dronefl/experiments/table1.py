@@ -17,7 +17,7 @@ import numpy as np
 
 from dronefl.config import Scenario
 from dronefl.experiments.episode import EpisodeMetrics
-from dronefl.experiments.track import TRACK_METHODS, TrackConfig, run_episode
+from dronefl.experiments.track import NOT_SETTINGS, TRACK_METHODS, TrackConfig, run_episode
 from dronefl.io import atomic_write_text
 from dronefl.results import ResultError
 
@@ -25,10 +25,6 @@ from dronefl.results import ResultError
 METRICS: tuple[str, ...] = (
     "prediction_error", "tracking_distance", "uncertainty", "speed_change", "total_cost",
 )  # fmt: skip
-
-
-#: Episode settings that do not change its results.
-_NOT_SETTINGS = ("out", "progress", "animate")
 
 
 @dataclass(frozen=True)
@@ -106,7 +102,6 @@ def _finished(config: TrackConfig) -> EpisodeMetrics | None:
         metrics = EpisodeMetrics.load(path)
     except ResultError:
         return None
-    settings = {k: v for k, v in config.describe().items() if k not in _NOT_SETTINGS}
-    ran = {k: v for k, v in metrics.config.items() if k not in _NOT_SETTINGS}
-    same = metrics.scenario_hash == config.scenario.content_hash and ran == settings
+    ran = {k: v for k, v in metrics.config.items() if k not in NOT_SETTINGS}
+    same = metrics.scenario_hash == config.scenario.content_hash and ran == config.settings()
     return metrics if same else None

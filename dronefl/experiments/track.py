@@ -20,6 +20,10 @@ RTS-smoothed over the whole past by default; ground truth only as an ablation):
 
 All models start from the same crop-field pretraining (:mod:`dronefl.experiments.pretrain`,
 done before the episode's Flower session starts); the episode runs in the orchard by default.
+
+After every FL period and after the last step the episode writes a checkpoint
+(:mod:`dronefl.experiments.loop_checkpoint`); with ``resume`` a killed episode continues from
+it, bit-identically but for the wall-clock timings.
 """
 
 from __future__ import annotations
@@ -40,6 +44,13 @@ from dronefl.experiments.episode import (
     EpisodeLog,
     EpisodeMetrics,
     tracking_metrics,
+)
+from dronefl.experiments.loop_checkpoint import (
+    CHECKPOINT_NAME,
+    LoopCheckpoint,
+    check_same_episode,
+    load_loop_checkpoint,
+    save_loop_checkpoint,
 )
 from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 from dronefl.fl.records import WEIGHT_DTYPES
@@ -68,6 +79,8 @@ from dronefl.tracking import (
 from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
+#: :class:`TrackConfig` fields that do not change an episode's results.
+NOT_SETTINGS: tuple[str, ...] = ("out", "progress", "animate", "resume")
 
 
 @dataclass(frozen=True)
@@ -85,7 +98,8 @@ class TrackConfig:
     ``weights_dtype`` number format of the model weights exchanged by DroneFL (``float32`` or
     ``float16``); ``pretrained`` folder of the pretrained models; ``pretrain_rounds`` their FL
     rounds and ``pretrain_seconds`` the crop field recorded for them; ``animate`` also writes
-    the GIF.
+    the GIF; ``resume`` reuses a finished episode in ``out`` and else continues from its
+    checkpoint (:mod:`dronefl.experiments.loop_checkpoint`) when there is one.
     """
 
     scenario: Scenario
@@ -108,6 +122,7 @@ class TrackConfig:
     pretrain_seconds: float = 600.0
     progress: bool = True
     animate: bool = True
+    resume: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in TRACK_METHODS:
@@ -143,10 +158,17 @@ class TrackConfig:
         )
 
     def describe(self) -> dict[str, str | int | float | bool]:
-        """The settings as plain values for ``metrics.json``."""
+        """The settings as plain values for ``metrics.json`` (all but ``resume``, which says
+        how the episode was run, not what ran)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["scenario"] = self.scenario.name
+        del values["resume"]
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
+
+    def settings(self) -> dict[str, str | int | float | bool]:
+        """The settings that change the episode's results (:meth:`describe` without
+        :data:`NOT_SETTINGS`); with the scenario's content hash they identify an episode."""
+        return {k: v for k, v in self.describe().items() if k not in NOT_SETTINGS}
 
 
 def fusion_config(scenario: Scenario, method: str = "robust") -> FusionConfig:
@@ -178,33 +200,66 @@ class LoopParts:
 
 def run_episode(config: TrackConfig, parts: LoopParts | None = None) -> EpisodeMetrics:
     """Run one closed-loop episode with ``parts`` (default: the paper's); writes
-    ``metrics.json``, ``episode.npz`` and the plots into ``config.out`` and returns the
+    ``episode.npz``, the plots and, last, ``metrics.json`` into ``config.out`` and returns the
     metrics.
 
-    The pretrained weights are fetched (trained if missing) first; a federated method then runs
-    the whole episode inside one Flower simulation session.
+    With ``config.resume`` a finished episode there (``metrics.json``) is returned as it is, and
+    else the episode continues from its checkpoint when there is one; either must be of this
+    episode's settings (:class:`~dronefl.fl.checkpoint.CheckpointError` naming the file and the
+    setting otherwise, raised before any work). The pretrained weights are fetched (trained if
+    missing) next; a federated method then runs the whole episode inside one Flower simulation
+    session.
     """
     parts = parts or LoopParts()
-    state = pretrained_state(config.pretrain_spec(), config.pretrained, progress=config.progress)
     out = Path(config.out)
+    saved = None
+    if config.resume:
+        finished = finished_episode(config)
+        if finished is not None:
+            return finished
+        saved = load_loop_checkpoint(
+            out / CHECKPOINT_NAME, config.settings(), config.scenario.content_hash
+        )
+    state = pretrained_state(config.pretrain_spec(), config.pretrained, progress=config.progress)
     out.mkdir(parents=True, exist_ok=True)
+    if saved is None:  # an earlier episode's checkpoint must not be resumed into this one
+        (out / CHECKPOINT_NAME).unlink(missing_ok=True)
     setup = LearnerSetup(
         out, state, config.past_steps, config.stride, config.epochs, config.seed,
-        config.weights_dtype,
+        config.weights_dtype, resumed=saved is not None,
     )  # fmt: skip
     if not config.learner.federated:
-        return _fly(config, config.learner(setup), state, parts)
+        return _fly(config, config.learner(setup), state, parts, saved)
     n_drones = len(config.scenario.drones)
 
     def body(driver) -> EpisodeMetrics:
         learner = config.learner(dataclasses.replace(setup, driver=driver))
-        return _fly(config, learner, state, parts)
+        return _fly(config, learner, state, parts, saved)
 
     return run_session(session_settings(setup), n_drones, body)
 
 
+def finished_episode(config: TrackConfig) -> EpisodeMetrics | None:
+    """The metrics of the finished episode in ``config.out`` (``None``: no ``metrics.json``);
+    raises :class:`~dronefl.fl.checkpoint.CheckpointError` naming the file when it is of
+    another episode, :class:`~dronefl.results.ResultError` when it is corrupt."""
+    path = Path(config.out) / "metrics.json"
+    if not path.is_file():
+        return None
+    metrics = EpisodeMetrics.load(path)
+    ran = {k: v for k, v in metrics.config.items() if k not in NOT_SETTINGS}
+    check_same_episode(
+        path, ran, metrics.scenario_hash, config.settings(), config.scenario.content_hash
+    )
+    return metrics
+
+
 class ClosedLoop:
-    """One episode's world, drones and cloud, stepped as the paper's Fig. 3."""
+    """One episode's world, drones and cloud, stepped as the paper's Fig. 3.
+
+    Built from a ``saved`` checkpoint (:meth:`checkpoint`), the loop continues where that one
+    stopped: the parts are built on the saved world and take up their saved state.
+    """
 
     def __init__(
         self,
@@ -212,6 +267,7 @@ class ClosedLoop:
         learner: Learner,
         state: dict[str, torch.Tensor],
         parts: LoopParts,
+        saved: LoopCheckpoint | None = None,
     ) -> None:
         scenario = config.scenario
         self.config, self.scenario, self.learner = config, scenario, learner
@@ -219,7 +275,7 @@ class ClosedLoop:
         model = build_model(predictor_config(kind, config.past_steps, 1))
         model.load_state_dict(state)
         self.predictor = TrajectoryPredictor(model, runtime=config.runtime)
-        self.world = World(scenario, config.environment, config.seed)
+        self.world = saved.world if saved else World(scenario, config.environment, config.seed)
         self.cloud_vision = learner.cloud_predicts and config.detector == "yolo"
         if self.cloud_vision:
             from dronefl.perception.uplink import CloudVisionDetector
@@ -241,6 +297,40 @@ class ClosedLoop:
         self.planner_seconds = 0.0
         self.rounds: list[ClosedLoopRound] = []
         self.fl_seconds = 0.0
+        if saved is not None:
+            self._restore(saved)
+
+    def checkpoint(self, step: int, wall_seconds: float) -> LoopCheckpoint:
+        """The loop's state before step ``step``, after ``wall_seconds`` s of wall time in
+        all (see :mod:`dronefl.experiments.loop_checkpoint`). It refers to the live parts:
+        save it before the next step."""
+        return LoopCheckpoint(
+            settings=self.config.settings(),
+            scenario_hash=self.scenario.content_hash,
+            step=step,
+            world=self.world,
+            fuser=self.fuser,
+            records=self.records,
+            log=self.log,
+            counter=self.counter,
+            rounds=self.rounds,
+            detector=self.detector.state(),
+            planner=self.planner.state(),
+            learner=self.learner.state(),
+            predictor=self.predictor.model.state_dict(),
+            planner_seconds=self.planner_seconds,
+            fl_seconds=self.fl_seconds,
+            wall_seconds=wall_seconds,
+        )
+
+    def _restore(self, saved: LoopCheckpoint) -> None:
+        self.fuser, self.records, self.log = saved.fuser, saved.records, saved.log
+        self.counter, self.rounds = saved.counter, saved.rounds
+        self.detector.restore(saved.detector)
+        self.planner.restore(saved.planner)
+        self.learner.restore(saved.learner)
+        self.predictor.load_state(saved.predictor)
+        self.planner_seconds, self.fl_seconds = saved.planner_seconds, saved.fl_seconds
 
     def step(self, k: int) -> None:
         """Step ``k``: detect -> predict -> send -> fuse -> plan -> send -> step."""
@@ -262,11 +352,14 @@ class ClosedLoop:
         self.log.cost[k] = plan.cost.total
         self.world.step(self._send_controls(k, plan))
 
-    def learn(self, k: int) -> None:
-        """After step ``k``: one model update if an FL period has just ended (none after the
-        last step)."""
+    def period_ended(self, k: int) -> bool:
+        """Whether an FL period ends after step ``k`` (none ends after the last step)."""
         every = int(round(self.config.fl_period * self.scenario.rate_hz))
-        if (k + 1) % every or k + 1 >= self.n_steps:
+        return (k + 1) % every == 0 and k + 1 < self.n_steps
+
+    def learn(self, k: int) -> None:
+        """After step ``k``: one model update if an FL period has just ended."""
+        if not self.period_ended(k):
             return
         started = time.perf_counter()
         labels = self._labels(k + 1)
@@ -356,23 +449,37 @@ class ClosedLoop:
 
 
 def _fly(
-    config: TrackConfig, learner: Learner, state: dict[str, torch.Tensor], parts: LoopParts
+    config: TrackConfig,
+    learner: Learner,
+    state: dict[str, torch.Tensor],
+    parts: LoopParts,
+    saved: LoopCheckpoint | None,
 ) -> EpisodeMetrics:
+    """Fly the episode (from the ``saved`` checkpoint's step, when given), checkpointing after
+    every FL period and at the end, and write its results."""
     # One thread: the tiny per-step models are dominated by thread hand-offs otherwise.
     torch.set_num_threads(1)
-    loop = ClosedLoop(config, learner, state, parts)
+    loop = ClosedLoop(config, learner, state, parts, saved)
+    out = Path(config.out)
+    first, wall_before = (saved.step, saved.wall_seconds) if saved else (0, 0.0)
     name = f"track {config.scenario.name} {config.method} seed {config.seed}"
     started = time.perf_counter()
+
+    def wall() -> float:
+        return wall_before + time.perf_counter() - started
+
     with progress_bar(name, loop.n_steps, config.progress) as advance:
-        for k in range(loop.n_steps):
+        advance(first)
+        for k in range(first, loop.n_steps):
             loop.step(k)
             loop.learn(k)
+            if loop.period_ended(k):
+                save_loop_checkpoint(out / CHECKPOINT_NAME, loop.checkpoint(k + 1, wall()))
             advance()
     loop.finish()
-    wall = time.perf_counter() - started
-    metrics = _metrics(config, loop, wall)
-    out = Path(config.out)
-    metrics.save(out / "metrics.json")
+    wall_seconds = wall()
+    save_loop_checkpoint(out / CHECKPOINT_NAME, loop.checkpoint(loop.n_steps, wall_seconds))
+    metrics = _metrics(config, loop, wall_seconds)
     loop.log.save(out / "episode.npz")
     from dronefl.report.tracking import plot_episode
 
@@ -381,6 +488,7 @@ def _fly(
         config.scenario, world.environment, world.camera, loop.log, out, config.method,
         config.animate,
     )  # fmt: skip
+    metrics.save(out / "metrics.json")  # last: it marks the episode finished
     return metrics
 
 

@@ -35,8 +35,9 @@ if TYPE_CHECKING:
 class LearnerSetup:
     """What a learner is built from: the episode folder ``out``, the pretrained weights
     ``state``, the windows (``past_steps`` L_p, ``stride`` samples between windows; L_f = 1),
-    ``epochs`` per update, ``seed``, ``weights_dtype`` on the wire, and for a federated
-    learner the episode's Flower round ``driver``."""
+    ``epochs`` per update, ``seed``, ``weights_dtype`` on the wire, for a federated learner
+    the episode's Flower round ``driver``, and whether the episode is ``resumed`` from a
+    checkpoint (the files of the updates before it are then kept)."""
 
     out: Path
     state: dict[str, torch.Tensor]
@@ -46,6 +47,7 @@ class LearnerSetup:
     seed: int
     weights_dtype: str = "float32"
     driver: RoundDriver | None = None
+    resumed: bool = False
 
 
 @dataclass(frozen=True)
@@ -78,3 +80,15 @@ class Learner(ABC):
         """Learn from ``records`` labelled by ``labels`` ``(steps, N, 2)`` m (column j is
         target ``records[0].target_ids[j]``; NaN where there is no label) in update number
         ``server_round`` (1, 2, ...); ``None`` if the method does not update its models."""
+
+    def state(self) -> object:
+        """What the learner carries from one update to the next (weights, round history), as
+        plain Python, numpy and torch objects, for an episode checkpoint
+        (:mod:`dronefl.experiments.loop_checkpoint`); ``None`` (the default): nothing. Runtime
+        objects (the Flower driver) are not part of it: the resumed episode builds new ones."""
+        return None
+
+    def restore(self, state: object) -> None:
+        """Continue from ``state``, a :meth:`state` of a learner built with the same setup."""
+        if state is not None:
+            raise ValueError(f"{type(self).__name__} carries no state to restore, got {state!r}")

@@ -4,6 +4,7 @@ pooled data of every drone (paper Table I)."""
 from __future__ import annotations
 
 import numpy as np
+import torch
 
 from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
 from dronefl.logs import PseudoLabels
@@ -37,3 +38,11 @@ class CentralizedLearner(Learner):
         seed = setup.seed * 1_000_003 + server_round
         stats = train_pooled(self.model, windows, TrainConfig(setup.epochs, 1e-3, 128, seed))
         return ModelUpdate(self.model.state_dict(), {0: stats.loss})
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The large model's current weights (it trains on from them in the next update)."""
+        return self.model.state_dict()
+
+    def restore(self, state: dict[str, torch.Tensor]) -> None:
+        """Continue from the weights ``state``."""
+        self.model.load_state_dict(state)

@@ -3,17 +3,20 @@
 The cloud writes every drone's onboard log so far and the labels to ``<out>/fl/round_<k>/``
 (the drones read the folder the round's config names; in a deployment each drone reads its own
 disk), and plays one round through the episode's Flower session, continuing from the current
-global model; the global checkpoint goes to ``<out>/fl/global/``.
+global model; the global checkpoint goes to ``<out>/fl/global/``. A resumed episode keeps that
+folder and continues from the global model and round history of its checkpoint.
 """
 
 from __future__ import annotations
 
 import shutil
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 
-from dronefl.fl.records import FlSettings
+from dronefl.fl.records import FlSettings, RoundRecord
 from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
 from dronefl.logs import PseudoLabels
 from dronefl.models.online import OnboardRecord
@@ -37,6 +40,15 @@ def session_settings(setup: LearnerSetup) -> FlSettings:
     )
 
 
+@dataclass(frozen=True)
+class FederatedState:
+    """What a federated learner carries between rounds: the global ``weights`` and the
+    ``history`` of the rounds played (the server's ``history.json`` goes on from it)."""
+
+    weights: dict[str, torch.Tensor]
+    history: tuple[RoundRecord, ...]
+
+
 class FederatedLearner(Learner):
     """FedAvg of the position-invariant AdaIN model through Flower, one round per update."""
 
@@ -48,15 +60,16 @@ class FederatedLearner(Learner):
             raise ValueError("the dronefl method needs the episode's Flower round driver")
         self.driver = setup.driver
         self.folder = setup.out / "fl"
-        shutil.rmtree(self.folder, ignore_errors=True)
-        self.state = setup.state
+        if not setup.resumed:
+            shutil.rmtree(self.folder, ignore_errors=True)
+        self.weights = setup.state
 
     def update(
         self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
     ) -> ModelUpdate:
         data = self.folder / f"round_{server_round:02d}"
         write_round_data(data, records, labels)
-        self.state = self.driver.play(self.state, server_round, run_dir=str(data))
+        self.weights = self.driver.play(self.weights, server_round, run_dir=str(data))
         entry = self.driver.history[-1]
         if entry.server_round != server_round:
             raise RuntimeError(f"federated round {server_round} did not finish")
@@ -68,12 +81,22 @@ class FederatedLearner(Learner):
         }
         drones = [r.drone_id for r in records]
         return ModelUpdate(
-            state=self.state,
+            state=self.weights,
             train_loss=dict(entry.train_loss),
             rejected=entry.rejected,
             weight_bytes_down={d: share["down"] for d in drones},
             weight_bytes_up={d: share["up"] for d in drones},
         )
+
+    def state(self) -> FederatedState:
+        """The global weights and the round history."""
+        return FederatedState(self.weights, tuple(self.driver.history))
+
+    def restore(self, state: FederatedState) -> None:
+        """Continue from ``state``: the next round starts from its weights and the server's
+        history goes on from its rounds."""
+        self.weights = state.weights
+        self.driver.history = list(state.history)
 
 
 def write_round_data(folder: Path, records: list[OnboardRecord], labels: np.ndarray) -> None:

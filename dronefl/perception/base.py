@@ -21,3 +21,16 @@ class Detector(ABC):
     @abstractmethod
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """Detect the targets in ``view``; returns detections sorted by target id."""
+
+    def state(self) -> object:
+        """What the detector carries from one frame to the next, as plain Python and numpy
+        objects (its random generators' states, counters), for an episode checkpoint
+        (:mod:`dronefl.experiments.loop_checkpoint`); ``None``: nothing. A detector that draws
+        random numbers or keeps anything between frames overrides this and :meth:`restore`, so
+        that a resumed episode continues bit-identically."""
+        return None
+
+    def restore(self, state: object) -> None:
+        """Continue from ``state``, a :meth:`state` of a detector built the same way."""
+        if state is not None:
+            raise ValueError(f"{type(self).__name__} carries no state to restore, got {state!r}")

@@ -149,6 +149,14 @@ class ProjectionDetector(Detector):
         self.noise = noise if noise is not None else ProjectionNoise.fitted()
         self.rng = rng
 
+    def state(self) -> dict:
+        """The random generator's state (:meth:`Detector.state`)."""
+        return self.rng.bit_generator.state
+
+    def restore(self, state: dict) -> None:
+        """Continue the random stream from ``state`` (:meth:`Detector.restore`)."""
+        self.rng.bit_generator.state = state
+
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """Detections of the vehicles in ``view`` (uses the true scene, not an image)."""
         if not view.targets:

@@ -116,6 +116,15 @@ class CloudVisionDetector(Detector):
         )
         return cls(renderer, YoloDetector(target_ids=scenario.target_ids), quality)
 
+    def state(self) -> dict[int, int]:
+        """The bytes each drone has sent so far (:meth:`Detector.state`; rendering, coding
+        and YOLO draw no random numbers)."""
+        return dict(self.bytes_sent)
+
+    def restore(self, state: dict[int, int]) -> None:
+        """Continue counting from ``state`` (:meth:`Detector.restore`)."""
+        self.bytes_sent = dict(state)
+
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """The cloud's detections in drone ``view.drone_id``'s JPEG-coded frame of ``view``."""
         image = view.image if view.image is not None else self.renderer.render_view(view)

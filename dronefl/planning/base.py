@@ -57,3 +57,15 @@ class Planner(ABC):
     @abstractmethod
     def plan(self, drones: Sequence[DroneState], forecast: TrackForecast) -> Plan:
         """Accelerations for ``drones`` given the fused tracks' ``forecast``."""
+
+    def state(self) -> object:
+        """What the planner carries from one step to the next, as plain Python and numpy
+        objects, for an episode checkpoint; ``None`` (the default): nothing. A planner that
+        keeps anything between steps (a warm start, a random generator) overrides this and
+        :meth:`restore`, so that a resumed episode continues bit-identically."""
+        return None
+
+    def restore(self, state: object) -> None:
+        """Continue from ``state``, a :meth:`state` of a planner built the same way."""
+        if state is not None:
+            raise ValueError(f"{type(self).__name__} carries no state to restore, got {state!r}")

@@ -3,96 +3,22 @@ bit-identical to an uninterrupted run: history, results (but wall-clock seconds)
 weights. The process kills itself (``DRONEFL_CRASH_AT``, see :mod:`dronefl.io`), so each
 kill lands at the same place every time; every process it started is gone afterwards."""
 
-import contextlib
-import ctypes
 import json
-import multiprocessing
-import os
 import signal
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
-import psutil
 import pytest
 
-from dronefl.io import CRASH_ENV
-
-PR_SET_CHILD_SUBREAPER = 36
 TINY = ["--scenario", "case1", "--duration", "40", "--stride", "5", "--seeds", "3", "--epochs", "2"]
 #: Where the runs of seed 3 live in an fl-offline folder.
 SEED = "seed_3"
-#: Children are forked from a server that has imported the CLI once (a fresh interpreter per
-#: run would spend most of the test importing torch; Adam imports torch._dynamo on first use).
-_SERVER = multiprocessing.get_context("forkserver")
-_SERVER.set_forkserver_preload(["dronefl.cli", "dronefl.experiments.fl_offline", "torch._dynamo"])
 
 
-def _cli(argv: list[str], crash_at: str | None) -> None:
-    from dronefl.cli import main
-
-    os.environ.pop(CRASH_ENV, None)
-    if crash_at:
-        os.environ[CRASH_ENV] = crash_at
-    sys.argv = ["dronefl", *argv]
-    main()
-
-
-def _adopt_orphans() -> None:
-    """Make this process the reaper of its descendants' orphans (Linux ``prctl``). A killed run's
-    Ray processes are orphaned; where PID 1 never reaps (as in some containers) the dead raylet
-    would stay a zombie, which Ray's agents take for a live parent, and never exit."""
-    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0)
-
-
-def _running(process: psutil.Process) -> bool:
-    """Alive (a zombie that was our orphan is reaped here; any other zombie counts as gone)."""
-    try:
-        if process.status() == psutil.STATUS_ZOMBIE:
-            with contextlib.suppress(ChildProcessError):
-                os.waitpid(process.pid, os.WNOHANG)
-            return False
-        return process.is_running()
-    except psutil.NoSuchProcess:
-        return False
-
-
-@pytest.fixture
-def started():
-    """Every process the test's runs started; at the end each must have exited by itself.
-
-    After a SIGKILL, Ray's raylet, GCS and workers go within seconds; its dashboard and
-    runtime-env agents first try to tell the dead GCS (a 60 s RPC timeout in Ray 2.55), so the
-    check waits up to 150 s after the last run, while the other runs of the test go on."""
-    seen: dict[int, psutil.Process] = {}
-    yield seen
-    deadline = time.monotonic() + 150
-    while (alive := [p for p in seen.values() if _running(p)]) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    for p in alive:  # clean up before failing
-        p.kill()
-    assert not alive, f"left running: {[p.name() for p in alive]}"
-
-
-def fl_offline(seen: dict, out: Path, *args: str, crash_at: str | None = None) -> int:
-    """Run `dronefl fl-offline` in a child process, adding every process it starts (Ray's
-    included) to ``seen``; returns its exit code."""
-    _adopt_orphans()
-    child = _SERVER.Process(
-        target=_cli, args=(["fl-offline", *TINY, "--out", str(out), *args], crash_at)
-    )
-    child.start()
-    while child.exitcode is None:
-        try:
-            for p in psutil.Process(child.pid).children(recursive=True):
-                seen.setdefault(p.pid, p)
-        except psutil.NoSuchProcess:
-            pass
-        time.sleep(0.2)
-    child.join()
-    assert child.exitcode in (0, -signal.SIGKILL), f"fl-offline exited {child.exitcode}"
-    return child.exitcode
+def fl_offline(cli_process, out: Path, *args: str, crash_at: str | None = None) -> int:
+    """Run `dronefl fl-offline` in a child process (the ``cli_process`` fixture); returns its exit
+    code."""
+    return cli_process(["fl-offline", *TINY, "--out", str(out), *args], crash_at)
 
 
 def outcome(out: Path, method: str) -> tuple[list, dict, dict[str, np.ndarray], list]:
@@ -144,17 +70,17 @@ CENTRALIZED_KILLS = (
 )
 
 
-def test_centralized_run_killed_four_times_resumes_bit_identical(tmp_path, started):
+def test_centralized_run_killed_four_times_resumes_bit_identical(tmp_path, cli_process):
     method = ["--methods", "centralized", "--rounds", "4"]
-    assert fl_offline(started, tmp_path / "reference", *method) == 0
+    assert fl_offline(cli_process, tmp_path / "reference", *method) == 0
     reference = outcome(tmp_path / "reference", "centralized")
     assert [h["round"] for h in reference[0]] == [1, 2, 3, 4]
 
     out = tmp_path / "killed"
-    assert fl_offline(started, out, *method, crash_at=CENTRALIZED_KILLS[0]) == -signal.SIGKILL
+    assert fl_offline(cli_process, out, *method, crash_at=CENTRALIZED_KILLS[0]) == -signal.SIGKILL
     rounds_after_kill = [json.loads((out / SEED / "centralized/history.json").read_text())]
     for point in CENTRALIZED_KILLS[1:]:
-        assert fl_offline(started, out, *method, "--resume", crash_at=point) == -signal.SIGKILL
+        assert fl_offline(cli_process, out, *method, "--resume", crash_at=point) == -signal.SIGKILL
         rounds_after_kill.append(json.loads((out / SEED / "centralized/history.json").read_text()))
     # What survived each kill: round 1; rounds 1-3 in the history (round 3's checkpoint was
     # never renamed into place); rounds 1-3; all four.
@@ -165,16 +91,16 @@ def test_centralized_run_killed_four_times_resumes_bit_identical(tmp_path, start
         [1, 2, 3, 4],
     ]
     assert not (out / "results.json").exists()
-    assert fl_offline(started, out, *method, "--resume") == 0
+    assert fl_offline(cli_process, out, *method, "--resume") == 0
     assert_identical(outcome(out, "centralized"), reference)
 
 
 @pytest.mark.slow
-def test_federated_run_with_faults_killed_mid_round_resumes_bit_identical(tmp_path, started):
+def test_federated_run_with_faults_killed_mid_round_resumes_bit_identical(tmp_path, cli_process):
     """FedAvg through Flower's simulation engine, with drone faults in rounds 2-4 (see
     test_fl_dropout.py), killed after round 3 trained but before it was recorded."""
     method = ["--methods", "fedavg", "--rounds", "4", "--faults", "2:1:raise,3:2:nan,4:1:shape"]
-    assert fl_offline(started, tmp_path / "reference", *method) == 0
+    assert fl_offline(cli_process, tmp_path / "reference", *method) == 0
     reference = outcome(tmp_path / "reference", "fedavg")
     assert [h["rejected"] for h in reference[0]] == [
         [],
@@ -184,10 +110,10 @@ def test_federated_run_with_faults_killed_mid_round_resumes_bit_identical(tmp_pa
     ]
 
     out = tmp_path / "killed"
-    assert fl_offline(started, out, *method, crash_at="round-end:3") == -signal.SIGKILL
+    assert fl_offline(cli_process, out, *method, crash_at="round-end:3") == -signal.SIGKILL
     assert [h["round"] for h in json.loads((out / SEED / "fedavg/history.json").read_text())] == [
         1,
         2,
     ]
-    assert fl_offline(started, out, *method, "--resume") == 0
+    assert fl_offline(cli_process, out, *method, "--resume") == 0
     assert_identical(outcome(out, "fedavg"), reference)
