@@ -426,10 +426,10 @@ def detector_train(
     except ValueError as exc:
         raise fail(str(exc)) from None
     record = train_detector(data / "data.yaml", out, config)
-    typer.echo(f"trained in {record['train_seconds'] / 60:.1f} min; ONNX at {record['onnx']}")
+    typer.echo(f"trained in {record.train_seconds / 60:.1f} min; ONNX at {record.onnx}")
     if ship:
         command = f"dronefl detector train --data {data} --imgsz {imgsz} --epochs {epochs}"
-        shipped = ship_detector(Path(record["onnx"]), detector_sidecar(data, record, command))
+        shipped = ship_detector(record.onnx, detector_sidecar(data, record, command))
         typer.echo(f"shipped {shipped}")
 
 

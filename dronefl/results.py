@@ -6,7 +6,8 @@ loop, the traffic of a run, ...) is a frozen dataclass with its units in its fie
 back from them, guided by the dataclass' type hints: nested dataclasses, tuples, dicts (JSON
 keys are strings; ``dict[int, ...]`` keys are turned back into ints), optional fields and
 :class:`~pathlib.Path` values. A field made with :func:`omitted_when_none` is left out of the
-JSON while it is None (a key that only some objects carry). :func:`save_result` /
+JSON while it is None (a key that only some objects carry); one made with :func:`json_key` is
+stored under a key that is no Python name (``"mAP50-95"``). :func:`save_result` /
 :func:`load_result` write and read them atomically, and a file that does not hold the expected
 object raises :class:`ResultError` naming the file.
 """
@@ -26,6 +27,8 @@ from dronefl.io import atomic_write_json
 T = TypeVar("T")
 #: Field metadata key of :func:`omitted_when_none`.
 _OMIT_NONE = "dronefl.results.omit_none"
+#: Field metadata key of :func:`json_key`.
+_JSON_KEY = "dronefl.results.json_key"
 
 
 class ResultError(ValueError):
@@ -38,12 +41,22 @@ def omitted_when_none() -> Any:
     return dataclasses.field(default=None, metadata={_OMIT_NONE: True})
 
 
+def json_key(key: str) -> Any:
+    """A dataclass field (without default) that :func:`to_json` writes under the JSON key
+    ``key`` instead of its name, and :func:`from_json` reads from there."""
+    return dataclasses.field(metadata={_JSON_KEY: key})
+
+
+def _key(field: dataclasses.Field) -> str:
+    return field.metadata.get(_JSON_KEY, field.name)
+
+
 def to_json(value: Any) -> Any:
     """Plain JSON values for ``value`` (dataclasses become objects, tuples lists, Paths
     strings, non-finite floats ``None``)."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return {
-            f.name: to_json(getattr(value, f.name))
+            _key(f): to_json(getattr(value, f.name))
             for f in dataclasses.fields(value)
             if not (f.metadata.get(_OMIT_NONE) and getattr(value, f.name) is None)
         }
@@ -94,11 +107,13 @@ def _build(hint: Any, data: Any, where: str) -> Any:
         if not isinstance(data, dict):
             raise TypeError(f"{where}: expected an object, got {type(data).__name__}")
         hints = typing.get_type_hints(hint)
-        known = {f.name for f in dataclasses.fields(hint) if f.init}
-        unknown = set(data) - known
+        names = {_key(f): f.name for f in dataclasses.fields(hint) if f.init}
+        unknown = set(data) - set(names)
         if unknown:
             raise KeyError(f"{where}: unknown field {sorted(unknown)[0]!r}")
-        return hint(**{k: _build(hints[k], v, f"{where}.{k}") for k, v in data.items()})
+        return hint(
+            **{names[k]: _build(hints[names[k]], v, f"{where}.{k}") for k, v in data.items()}
+        )
     if origin is tuple:
         args = typing.get_args(hint)
         item = args[0] if args else Any

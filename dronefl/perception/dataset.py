@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,7 @@ from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.perception.palette import COLOUR_NAMES, MAX_TARGETS
 from dronefl.perception.projection import ProjectionNoise, visible_boxes
 from dronefl.perception.render import SceneRenderer
+from dronefl.results import load_result, save_result
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 from dronefl.types import TargetState
@@ -67,6 +68,21 @@ class DatasetConfig:
                 f"need 0 < altitude_min < altitude_max, got {self.altitude_min}, "
                 f"{self.altitude_max}"
             )
+
+
+@dataclass(frozen=True)
+class DatasetManifest:
+    """``dataset.json``: the ``config`` that rendered the dataset and its ``frames`` per split
+    (``train``, ``val``, ``test_<environment>``)."""
+
+    config: DatasetConfig
+    frames: dict[str, int]
+
+    @classmethod
+    def load(cls, dataset: Path) -> DatasetManifest:
+        """The manifest of the dataset folder ``dataset``; :class:`~dronefl.results.ResultError`
+        if it has none or a bad one."""
+        return load_result(cls, dataset / "dataset.json")
 
 
 @dataclass(frozen=True)
@@ -257,9 +273,7 @@ def write_dataset(
     for kind in DATASET_ENVIRONMENTS:
         data = {**base, "test": f"images/test_{kind}"}
         (out / f"data_{kind}.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
-    (out / "dataset.json").write_text(
-        json.dumps({"config": asdict(config), "frames": counts}, indent=2)
-    )
+    save_result(out / "dataset.json", DatasetManifest(config, counts))
     return counts
 
 

@@ -27,7 +27,7 @@ The :class:`~dronefl.perception.projection.ProjectionNoise` fit:
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from importlib import resources
 from pathlib import Path
 
@@ -36,15 +36,23 @@ from PIL import Image
 from scipy.optimize import minimize
 
 from dronefl.config import VehicleSpec, load_scenario
-from dronefl.io import atomic_write_text
 from dronefl.perception.dataset import DATASET_ENVIRONMENTS, LabelledScene, read_scenes
 from dronefl.perception.projection import (
     FITTED_NOISE_ASSET,
+    FittedNoise,
     ProjectionNoise,
     visible_boxes,
 )
+from dronefl.perception.quality import (
+    AltitudeRow,
+    DetectorReport,
+    EnvironmentMetrics,
+    EnvironmentReport,
+    NoiseFit,
+)
 from dronefl.perception.training import DETECTOR_SIDECAR
 from dronefl.perception.yolo import YoloDetector
+from dronefl.results import save_result
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 
@@ -135,7 +143,9 @@ def _all_vehicles(
     }
 
 
-def altitude_table(outcomes: list[VehicleOutcome], false_reports: int, frames: int) -> list[dict]:
+def altitude_table(
+    outcomes: list[VehicleOutcome], false_reports: int, frames: int
+) -> tuple[AltitudeRow, ...]:
     """Per altitude bin (and ``all``): labelled vehicles, miss rate, centre error RMS (px),
     size error RMS; ``false_per_frame`` is given for ``all`` only."""
     rows = []
@@ -144,15 +154,15 @@ def altitude_table(outcomes: list[VehicleOutcome], false_reports: int, frames: i
     for name, lo, hi in [*bins, ("all", edges[0], edges[-1])]:
         sel = [o for o in outcomes if o.labelled and lo <= o.altitude < hi + (name == "all")]
         found = [o for o in sel if o.found]
-        rows.append({
-            "altitude_m": name,
-            "vehicles": len(sel),
-            "miss_rate": 1 - len(found) / len(sel) if sel else float("nan"),
-            "center_rms_px": _rms([c for o in found for c in o.center_error_px]),
-            "size_rms": _rms([s for o in found for s in o.size_error]),
-        })  # fmt: skip
-    rows[-1]["false_per_frame"] = false_reports / max(frames, 1)
-    return rows
+        rows.append(AltitudeRow(
+            altitude_m=name,
+            vehicles=len(sel),
+            miss_rate=1 - len(found) / len(sel) if sel else float("nan"),
+            center_rms_px=_rms([c for o in found for c in o.center_error_px]),
+            size_rms=_rms([s for o in found for s in o.size_error]),
+        ))  # fmt: skip
+    rows[-1] = replace(rows[-1], false_per_frame=false_reports / max(frames, 1))
+    return tuple(rows)
 
 
 def _rms(values: list[float]) -> float:
@@ -198,8 +208,8 @@ def _fit_miss(slant: np.ndarray, missed: np.ndarray) -> tuple[float, float, floa
 
 
 def ultralytics_map(weights: Path, dataset: Path, environment: str, imgsz: int,
-                    run_dir: Path) -> dict[str, float]:  # fmt: skip
-    """mAP50 and mAP50-95 from Ultralytics' validator on one environment's test split."""
+                    run_dir: Path) -> tuple[float, float]:  # fmt: skip
+    """``(mAP50, mAP50-95)`` from Ultralytics' validator on one environment's test split."""
     from dronefl.perception.training import prepare_ultralytics
 
     prepare_ultralytics(run_dir)
@@ -210,76 +220,69 @@ def ultralytics_map(weights: Path, dataset: Path, environment: str, imgsz: int,
         batch=1, device="cpu", plots=False, project=str(run_dir.resolve()),
         name=f"val_{environment}", exist_ok=True, verbose=False,
     )  # fmt: skip
-    return {"mAP50": float(metrics.box.map50), "mAP50-95": float(metrics.box.map)}
+    return float(metrics.box.map50), float(metrics.box.map)
 
 
-def evaluate_detector(weights: Path, dataset: Path, run_dir: Path, threads: int = 1) -> dict:
+def evaluate_detector(
+    weights: Path, dataset: Path, run_dir: Path, threads: int = 1
+) -> DetectorReport:
     """Everything in the module doc, for both environments; written to ``run_dir/eval.json``."""
     if not (dataset / "dataset.json").is_file():
         raise FileNotFoundError(f"no dataset at {dataset}: run `dronefl detector dataset`")
     detector = YoloDetector(weights, threads=threads)
-    report: dict = {"weights": str(weights), "dataset": str(dataset), "environments": {}}
+    environments: dict[str, EnvironmentReport] = {}
     all_outcomes: list[VehicleOutcome] = []
     for env in DATASET_ENVIRONMENTS:
         outcomes, false_reports, frames = score_frames(detector, dataset, env)
         all_outcomes += outcomes
-        report["environments"][env] = {
-            "frames": frames,
-            **ultralytics_map(weights, dataset, env, detector.imgsz, run_dir),
-            "by_altitude": altitude_table(outcomes, false_reports, frames),
-        }
+        map50, map50_95 = ultralytics_map(weights, dataset, env, detector.imgsz, run_dir)
+        table = altitude_table(outcomes, false_reports, frames)
+        environments[env] = EnvironmentReport(frames, map50, map50_95, table)
     fitted = fit_projection_noise(all_outcomes)
-    report["projection_noise"] = {"before": asdict(ProjectionNoise()), "after": asdict(fitted)}
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "eval.json").write_text(json.dumps(report, indent=2))
+    report = DetectorReport(weights, dataset, environments, NoiseFit(ProjectionNoise(), fitted))
+    report.save(run_dir / "eval.json")
     return report
 
 
-def ship_evaluation(report: dict, update_sidecar: bool) -> list[Path]:
+def ship_evaluation(report: DetectorReport, update_sidecar: bool) -> list[Path]:
     """Write the fitted noise to ``dronefl/assets/projection_noise.json`` (the projection
     detector's default) and, if ``update_sidecar``, the metrics into ``detector.json``."""
     assets = Path(str(resources.files("dronefl") / "assets"))
-    noise = report["projection_noise"]
-    record = {
-        "params": noise["after"],
-        "before": noise["before"],
-        "source": "dronefl detector evaluate: YOLO detector on the held-out rendered frames",
-        "weights": Path(report["weights"]).name,
-    }
-    written = [assets / FITTED_NOISE_ASSET]
-    atomic_write_text(written[0], json.dumps(record, indent=2) + "\n")
+    noise = report.projection_noise
+    record = FittedNoise(
+        params=noise.after,
+        before=noise.before,
+        source="dronefl detector evaluate: YOLO detector on the held-out rendered frames",
+        weights=report.weights.name,
+    )
+    written = [save_result(assets / FITTED_NOISE_ASSET, record)]
     if update_sidecar:
-        sidecar_path = assets / DETECTOR_SIDECAR
-        sidecar = json.loads(sidecar_path.read_text())
-        sidecar["metrics"] = {
-            env: {k: v for k, v in r.items() if k != "by_altitude"} | {"all": r["by_altitude"][-1]}
-            for env, r in report["environments"].items()
-        }
-        atomic_write_text(sidecar_path, json.dumps(sidecar, indent=2) + "\n")
-        written.append(sidecar_path)
+        metrics = {env: EnvironmentMetrics.of(r) for env, r in report.environments.items()}
+        sidecar = replace(YoloDetector.sidecar(), metrics=metrics)
+        written.append(sidecar.save(assets / DETECTOR_SIDECAR))
     return written
 
 
-def format_report(report: dict) -> str:
+def format_report(report: DetectorReport) -> str:
     """Markdown tables: mAP per environment, errors by altitude, noise before/after."""
     lines = ["| environment | frames | mAP50 | mAP50-95 | miss rate | centre RMS px | "
              "size RMS | false / frame |", "|---|---|---|---|---|---|---|---|"]  # fmt: skip
-    for env, r in report["environments"].items():
-        a = r["by_altitude"][-1]
+    for env, r in report.environments.items():
+        a = r.overall
         lines.append(
-            f"| {env} | {r['frames']} | {r['mAP50']:.3f} | {r['mAP50-95']:.3f} | "
-            f"{a['miss_rate']:.3f} | {a['center_rms_px']:.2f} | {a['size_rms']:.3f} | "
-            f"{a['false_per_frame']:.3f} |"
+            f"| {env} | {r.frames} | {r.map50:.3f} | {r.map50_95:.3f} | "
+            f"{a.miss_rate:.3f} | {a.center_rms_px:.2f} | {a.size_rms:.3f} | "
+            f"{a.false_per_frame:.3f} |"
         )
     lines += ["", "| environment | altitude m | vehicles | miss rate | centre RMS px | size RMS |",
               "|---|---|---|---|---|---|"]  # fmt: skip
-    for env, r in report["environments"].items():
-        for a in r["by_altitude"][:-1]:
+    for env, r in report.environments.items():
+        for a in r.bins:
             lines.append(
-                f"| {env} | {a['altitude_m']} | {a['vehicles']} | {a['miss_rate']:.3f} | "
-                f"{a['center_rms_px']:.2f} | {a['size_rms']:.3f} |"
+                f"| {env} | {a.altitude_m} | {a.vehicles} | {a.miss_rate:.3f} | "
+                f"{a.center_rms_px:.2f} | {a.size_rms:.3f} |"
             )
-    before, after = report["projection_noise"]["before"], report["projection_noise"]["after"]
+    before, after = asdict(report.projection_noise.before), asdict(report.projection_noise.after)
     lines += ["", "| ProjectionNoise | before (hand-set) | after (fitted) |", "|---|---|---|"]
     lines += [f"| {k} | {before[k]:.4g} | {after[k]:.4g} |" for k in before]
     return "\n".join(lines)

@@ -17,7 +17,7 @@ and width/height scale by ``1 + N(0, size_frac^2)``.
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from functools import lru_cache
 from importlib import resources
 
@@ -25,6 +25,7 @@ import numpy as np
 
 from dronefl.config import VehicleSpec
 from dronefl.perception.base import Detector
+from dronefl.results import from_json
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 from dronefl.types import CameraView, Detection
@@ -51,8 +52,18 @@ class ProjectionNoise:
         asset = resources.files("dronefl") / "assets" / FITTED_NOISE_ASSET
         if not asset.is_file():
             return cls()
-        params = json.loads(asset.read_text())["params"]
-        return cls(**{k: float(params[k]) for k in asdict(cls())})
+        return from_json(FittedNoise, json.loads(asset.read_text())).params
+
+
+@dataclass(frozen=True)
+class FittedNoise:
+    """The shipped fit (``projection_noise.json``): the ``params`` fitted to the detector
+    ``weights`` (file name), the hand-set ones ``before``, and the ``source`` of the data."""
+
+    params: ProjectionNoise
+    before: ProjectionNoise
+    source: str
+    weights: str
 
 
 def vehicle_corners(

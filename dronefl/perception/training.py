@@ -12,16 +12,18 @@ All Ultralytics state (settings, runs) stays in the run folder; ``YOLO_OFFLINE=1
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+from dronefl.perception.dataset import DatasetManifest
 from dronefl.perception.nms_compat import ensure_torchvision_nms
 from dronefl.perception.palette import COLOUR_NAMES
+from dronefl.perception.quality import EnvironmentMetrics
+from dronefl.results import load_result, save_result
 
 #: Shipped detector weights and their sidecar inside the package.
 DETECTOR_ASSET = "detector.onnx"
@@ -50,6 +52,48 @@ class TrainConfig:
             raise ValueError("epochs, batch and threads must be >= 1 and workers >= 0")
 
 
+@dataclass(frozen=True)
+class TrainingRecord:
+    """One training run (``train.json``): its ``config``, the ``data`` YAML, the wall time
+    ``train_seconds`` (s) on ``torch_threads`` threads, the ``best_checkpoint`` (by validation
+    mAP50-95) and the ``onnx`` file exported from it."""
+
+    config: TrainConfig
+    data: Path
+    train_seconds: float
+    torch_threads: int
+    best_checkpoint: Path
+    onnx: Path
+
+
+@dataclass(frozen=True)
+class DetectorSidecar:
+    """The JSON shipped beside the ONNX weights (``detector.json``).
+
+    ``classes``: network class -> target name; ``imgsz``: the input side (px) and ``input`` its
+    layout; ``command``: what made the weights; ``dataset``: the manifest of the training data;
+    ``training``: the run's record; ``metrics``: per environment, filled in by
+    ``dronefl detector evaluate`` (None until then).
+    """
+
+    classes: dict[int, str]
+    imgsz: int
+    input: str
+    command: str
+    dataset: DatasetManifest
+    training: TrainingRecord
+    metrics: dict[str, EnvironmentMetrics] | None = None
+
+    def save(self, path: Path) -> Path:
+        """Write the sidecar to ``path``."""
+        return save_result(path, self)
+
+    @classmethod
+    def load(cls, path: Path) -> DetectorSidecar:
+        """Read a sidecar; :class:`~dronefl.results.ResultError` names a bad file."""
+        return load_result(cls, path)
+
+
 def prepare_ultralytics(run_dir: Path) -> None:
     """Point Ultralytics' settings into ``run_dir``, forbid downloads, fix ``torchvision::nms``.
 
@@ -60,7 +104,7 @@ def prepare_ultralytics(run_dir: Path) -> None:
     ensure_torchvision_nms()
 
 
-def train_detector(data_yaml: Path, run_dir: Path, config: TrainConfig) -> dict:
+def train_detector(data_yaml: Path, run_dir: Path, config: TrainConfig) -> TrainingRecord:
     """Train on ``data_yaml``, export ONNX; returns the training record (also written to
     ``run_dir/train.json``) with the paths of the best checkpoint and the ONNX file."""
     if not data_yaml.is_file():
@@ -85,40 +129,32 @@ def train_detector(data_yaml: Path, run_dir: Path, config: TrainConfig) -> dict:
     onnx_path = Path(
         YOLO(str(best)).export(format="onnx", imgsz=config.imgsz, simplify=False, dynamic=False)
     )
-    record = {
-        "config": asdict(config),
-        "data": str(data_yaml.resolve()),
-        "train_seconds": train_s,
-        "torch_threads": config.threads,
-        "best_checkpoint": str(best),
-        "onnx": str(onnx_path),
-    }
-    (run_dir / "train.json").write_text(json.dumps(record, indent=2))
+    record = TrainingRecord(config, data_yaml.resolve(), train_s, config.threads, best, onnx_path)
+    save_result(run_dir / "train.json", record)
     return record
 
 
-def detector_sidecar(dataset: Path, record: dict, command: str) -> dict:
-    """The JSON shipped beside the ONNX weights: classes, input size, the command that made
+def detector_sidecar(dataset: Path, record: TrainingRecord, command: str) -> DetectorSidecar:
+    """The sidecar shipped beside the ONNX weights: classes, input size, the command that made
     them, the dataset's size and recipe, training time. ``metrics`` is filled in by
     ``dronefl detector evaluate``."""
     if not (dataset / "dataset.json").is_file():
         raise FileNotFoundError(f"no dataset.json in {dataset}")
-    return {
-        "classes": {i: f"target {i + 1} ({name})" for i, name in enumerate(COLOUR_NAMES)},
-        "imgsz": record["config"]["imgsz"],
-        "input": "RGB float32 (1, 3, imgsz, imgsz) in [0, 1], letterboxed from the 640 px frame",
-        "command": command,
-        "dataset": json.loads((dataset / "dataset.json").read_text()),
-        "training": record,
-        "metrics": None,
-    }
+    return DetectorSidecar(
+        classes={i: f"target {i + 1} ({name})" for i, name in enumerate(COLOUR_NAMES)},
+        imgsz=record.config.imgsz,
+        input="RGB float32 (1, 3, imgsz, imgsz) in [0, 1], letterboxed from the 640 px frame",
+        command=command,
+        dataset=DatasetManifest.load(dataset),
+        training=record,
+    )
 
 
-def ship_detector(onnx_path: Path, sidecar: dict, assets: Path | None = None) -> Path:
+def ship_detector(onnx_path: Path, sidecar: DetectorSidecar, assets: Path | None = None) -> Path:
     """Copy ``onnx_path`` into the package assets with its JSON ``sidecar``; returns the path."""
     folder = assets or Path(str(resources.files("dronefl") / "assets"))
     folder.mkdir(parents=True, exist_ok=True)
     target = folder / DETECTOR_ASSET
     shutil.copyfile(onnx_path, target)
-    (folder / DETECTOR_SIDECAR).write_text(json.dumps(sidecar, indent=2) + "\n")
+    sidecar.save(folder / DETECTOR_SIDECAR)
     return target

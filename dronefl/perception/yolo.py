@@ -14,7 +14,6 @@ and ``C`` class scores. Decoding, all in numpy:
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -28,7 +27,7 @@ from onnx import numpy_helper
 
 from dronefl.perception.base import Detector
 from dronefl.perception.render import SceneRenderer
-from dronefl.perception.training import DETECTOR_ASSET, DETECTOR_SIDECAR
+from dronefl.perception.training import DETECTOR_ASSET, DETECTOR_SIDECAR, DetectorSidecar
 from dronefl.types import CameraView, Detection
 
 if TYPE_CHECKING:
@@ -159,10 +158,12 @@ class YoloDetector(Detector):
         return cls(renderer=renderer, target_ids=scenario.target_ids)
 
     @staticmethod
-    def sidecar(weights: Path | None = None) -> dict:
-        """The JSON record shipped beside the weights (training command, data, metrics)."""
-        path = (weights or shipped_detector_path()).with_name(DETECTOR_SIDECAR)
-        return json.loads(path.read_text())
+    def sidecar(weights: Path | None = None) -> DetectorSidecar:
+        """The record shipped beside the ``weights`` (default: the shipped ones): training
+        command, data, metrics."""
+        return DetectorSidecar.load(
+            (weights or shipped_detector_path()).with_name(DETECTOR_SIDECAR)
+        )
 
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """Detections in ``view.image`` (rendered first if the view carries none)."""

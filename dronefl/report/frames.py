@@ -4,7 +4,6 @@ them, and the detector's measured quality against altitude."""
 from __future__ import annotations
 
 import io
-import json
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -15,6 +14,7 @@ from dronefl.config import load_scenario
 from dronefl.io import atomic_write_bytes
 from dronefl.perception.dataset import DATASET_ENVIRONMENTS
 from dronefl.perception.projection import vehicle_boxes
+from dronefl.perception.quality import DetectorReport
 from dronefl.perception.render import SceneRenderer
 from dronefl.perception.yolo import YoloDetector
 from dronefl.report.topdown import save_figure
@@ -85,14 +85,14 @@ def detection_panel(
     return panel
 
 
-def plot_quality(report: dict, path: Path) -> Path:
+def plot_quality(report: DetectorReport, path: Path) -> Path:
     """Miss rate and centre error of the YOLO detector against altitude, per environment."""
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4))
-    for env, result in report["environments"].items():
-        rows = result["by_altitude"][:-1]
-        names = [r["altitude_m"] for r in rows]
-        axes[0].plot(names, [r["miss_rate"] for r in rows], "o-", label=env)
-        axes[1].plot(names, [r["center_rms_px"] for r in rows], "o-", label=env)
+    for env, result in report.environments.items():
+        rows = result.bins
+        names = [r.altitude_m for r in rows]
+        axes[0].plot(names, [r.miss_rate for r in rows], "o-", label=env)
+        axes[1].plot(names, [r.center_rms_px for r in rows], "o-", label=env)
     axes[0].set_ylabel("miss rate (IoU < 0.5 or not found)")
     axes[1].set_ylabel("centre error RMS, px (640 px frame)")
     for ax in axes:
@@ -122,6 +122,6 @@ def write_detector_figures(out: Path, weights: Path | None, eval_json: Path) -> 
         panel.save(buffer, format="png")
         written.append(atomic_write_bytes(out / f"detector_{env}.png", buffer.getvalue()))
     if eval_json.is_file():
-        report = json.loads(eval_json.read_text())
+        report = DetectorReport.load(eval_json)
         written.append(plot_quality(report, out / "detector_quality.png"))
     return written
