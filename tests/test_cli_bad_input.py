@@ -4,12 +4,11 @@ file) one line naming it, before any work starts."""
 
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import pytest
+from cli_child import run_cli
 
-from dronefl.cli import main
 from dronefl.config import load_scenario
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
@@ -18,20 +17,6 @@ from dronefl.fl.server_app import initial_state
 
 CORPUS = Path(__file__).parent / "data" / "corrupt"
 CASES = ("missing", "empty", "truncated", "wrong_format", "wrong_version", "nan", "wrong_shape")
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str]:
-    """``dronefl ARGV`` in this process; returns the exit code and what went to stderr."""
-    old = sys.argv
-    sys.argv = ["dronefl", *argv]
-    try:
-        main()
-        code = 0
-    except SystemExit as exc:
-        code = exc.code
-    finally:
-        sys.argv = old
-    return code, capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")

@@ -11,12 +11,11 @@ checkpoint after steps 50, 100 and 150.
 import json
 import pickle
 import signal
-import sys
 from pathlib import Path
 
 import numpy as np
+from cli_child import run_cli
 
-from dronefl.cli import main
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 
 TRACK = ["track", "--scenario", "case1", "--duration", "30", "--fl-period", "10", "--no-animate"]
@@ -110,21 +109,8 @@ def test_episode_killed_mid_round_and_mid_checkpoint_resumes_bit_identical(
     # Another episode's results, or checkpoint: one line naming the file and the setting,
     # before any work.
     argv = [*TRACK, "--pretrained", str(quick_pretrained), "--out", str(out), "--resume"]
-    code, err = _in_process(capsys, [*argv, "--fl-period", "15"])
+    code, err = run_cli(capsys, *argv, "--fl-period", "15")
     assert code == 2 and "metrics.json" in err and "fl_period is 10.0 there, 15.0 here" in err
     (out / "metrics.json").unlink()
-    code, err = _in_process(capsys, [*argv, "--seed", "1"])
+    code, err = run_cli(capsys, *argv, "--seed", "1")
     assert code == 2 and CHECKPOINT_NAME in err and "seed is 0 there, 1 here" in err
-
-
-def _in_process(capsys, argv: list[str]) -> tuple[int, str]:
-    """``dronefl ARGV`` in this process; returns the exit code and what went to stderr."""
-    old, sys.argv = sys.argv, ["dronefl", *argv]
-    try:
-        main()
-        code = 0
-    except SystemExit as exc:
-        code = exc.code
-    finally:
-        sys.argv = old
-    return code, capsys.readouterr().err
