@@ -37,6 +37,7 @@ FLUSH = "dronefl/drone/{id}/flush"  # queryable: write the onboard record and la
 RELOAD = "dronefl/drone/{id}/reload"  # queryable: load the new global model from disk
 RELEASE = "dronefl/cloud/release"  # cloud -> world: step k is planned, move on
 ALIVE = "dronefl/alive/{role}"  # liveliness: world, cloud, drone/<id>
+CONNECT_RETRY = {"period_init_ms": 100, "period_max_ms": 500, "period_increase_factor": 2}
 
 
 class LinkError(RuntimeError):
@@ -76,13 +77,18 @@ class LinkConfig:
         return [f"{self.protocol}/{e}" for e in endpoints]
 
     def zenoh_config(self) -> zenoh.Config:
-        """The session configuration: peer mode, no multicast scouting, explicit endpoints."""
+        """The session configuration: peer mode, no multicast scouting, explicit endpoints.
+
+        A peer not yet listening (or gone after a dropout) is retried every 0.1 s, backing
+        off to every 0.5 s, instead of Zenoh's default 1-4 s: a process that starts a few
+        seconds after the one connecting to it is otherwise seen up to 4 s late."""
         config = zenoh.Config()
         values: dict[str, object] = {
             "mode": "peer",
             "scouting/multicast/enabled": False,
             "listen/endpoints": self.locators(self.listen),
             "connect/endpoints": self.locators(self.connect),
+            "connect/retry": CONNECT_RETRY,
         }
         if self.tls is not None:
             self.tls.check()

@@ -49,9 +49,11 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
     with said.open("w") as output:
         launcher = subprocess.Popen(command, env=run_env, stdout=output, stderr=subprocess.STDOUT)
     try:
-        # Killed once the world has done 125 steps (both tracks exist, drone 2 predicts), well
-        # before the first round at step 200; a restart (Python, torch, Zenoh, a SuperNode)
-        # takes seconds, the 75 steps left take well under one.
+        # Killed once the launcher has seen every process up (a drone dying before that is a
+        # failed start, not a fault to ride out) and the world has done 125 steps (both tracks
+        # exist, drone 2 predicts), well before the first round at step 200; a restart (Python,
+        # torch, Zenoh, a SuperNode) takes seconds, the 75 steps left take about one.
+        _wait_for_line(said, "deploy: all up", launcher, 300)
         _wait_for_line(out / "logs" / "world.log", "step 125/", launcher, 300)
         victim = _drone_process(launcher, 2)
         assert victim is not None, said.read_text()
