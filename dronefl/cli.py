@@ -494,6 +494,18 @@ LabelsOption = Annotated[
     ),
 ]
 FusionOption = Annotated[str, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
+EpochsOption = Annotated[
+    int, typer.Option("--epochs", min=1, help="Local epochs per model update.")
+]
+LrOption = Annotated[float, typer.Option("--lr", help="Adam learning rate of the model updates.")]
+LabelDronesOption = Annotated[
+    str,
+    typer.Option(
+        "--label-drones",
+        help="Who learns from a label: all | others (another drone saw the target then) | "
+        "lower (a lower drone did).",
+    ),
+]
 PretrainRoundsOption = Annotated[
     int, typer.Option("--pretrain-rounds", help="FL rounds of the crop-field pretraining.")
 ]
@@ -521,8 +533,11 @@ def track(
     detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: LabelsOption = "smoothed",
+    label_drones: LabelDronesOption = "all",
     fusion: FusionOption = "robust",
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
+    epochs: EpochsOption = 10,
+    lr: LrOption = 1e-3,
     weights_dtype: WeightsDtypeOption = "float32",
     pretrained: PretrainedOption = Path("runs/pretrained"),
     pretrain_rounds: PretrainRoundsOption = 20,
@@ -553,8 +568,11 @@ def track(
         detector=detector,
         fl_period=fl_period,
         labels=labels,
+        label_drones=label_drones,
         fusion=fusion,
         past_steps=past_steps,
+        epochs=epochs,
+        lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained,
         pretrain_rounds=pretrain_rounds,
@@ -602,7 +620,10 @@ def table1(
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: LabelsOption = "smoothed",
+    label_drones: LabelDronesOption = "all",
     fusion: FusionOption = "robust",
+    epochs: EpochsOption = 10,
+    lr: LrOption = 1e-3,
     weights_dtype: WeightsDtypeOption = "float32",
     pretrained: PretrainedOption = Path("runs/pretrained"),
     pretrain_rounds: PretrainRoundsOption = 20,
@@ -622,7 +643,8 @@ def table1(
     for method in chosen:
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
-        scenario=specs[0], duration=duration, fl_period=fl_period, labels=labels, fusion=fusion,
+        scenario=specs[0], duration=duration, fl_period=fl_period, labels=labels,
+        label_drones=label_drones, fusion=fusion, epochs=epochs, lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,

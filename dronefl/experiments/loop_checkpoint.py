@@ -14,7 +14,8 @@ from and every part's state at that step:
 * through each part's ``state()`` (the parts that hold runtime objects, which a resumed episode
   builds anew): the detector's (its random generator; an ONNX session or renderer is rebuilt),
   the planner's, the learner's (weights and round history; the Flower driver is the new
-  session's) and the on-board predictor's weights (its ONNX session is compiled from them).
+  session's) and each drone's on-board predictor weights (its ONNX session is compiled
+  from them).
 
 A resumed episode's numbers equal an uninterrupted one's bit for bit, except the wall-clock
 timings (``wall_seconds``, ``fl_seconds``, ``planner_ms_per_step``, each round's ``seconds``):
@@ -45,7 +46,7 @@ from dronefl.tracking import Fuser
 #: The checkpoint's file name in the episode folder.
 CHECKPOINT_NAME = "checkpoint.pkl"
 #: Written into every checkpoint; a file of another format version is refused.
-CHECKPOINT_FORMAT = "dronefl.loop_checkpoint/1"
+CHECKPOINT_FORMAT = "dronefl.loop_checkpoint/2"
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class LoopCheckpoint:
     ``settings`` are the episode's settings (:meth:`TrackConfig.settings
     <dronefl.experiments.track.TrackConfig.settings>`) and ``scenario_hash`` its scenario's
     content hash, to refuse resuming another episode. ``detector``, ``planner`` and ``learner``
-    are those parts' ``state()``; ``predictor`` the on-board predictor's weights.
+    are those parts' ``state()``; ``predictors`` each drone's on-board predictor weights.
     ``planner_seconds``, ``fl_seconds`` and ``wall_seconds`` are the wall time (s) spent so far
     planning, updating models and in all, over every process that ran the episode.
     """
@@ -72,7 +73,7 @@ class LoopCheckpoint:
     detector: object
     planner: object
     learner: object
-    predictor: dict[str, torch.Tensor]
+    predictors: dict[int, dict[str, torch.Tensor]]
     planner_seconds: float
     fl_seconds: float
     wall_seconds: float

@@ -76,6 +76,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
+from dronefl.tracking.labels import LABEL_DRONES, label_drones
 from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -91,15 +92,18 @@ class TrackConfig:
     simulated; ``environment`` where it is deployed; ``detector`` on the drones; ``fl_period``
     s between model updates; ``labels`` the training labels' source
     (:data:`dronefl.tracking.LABEL_SOURCES`: ``smoothed`` fused tracks, the default;
-    ``filtered``, the paper's; ``ground_truth``, an ablation); ``fusion`` the cloud's fusion
-    method (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``);
-    ``epochs`` local epochs per update; ``stride`` samples between
-    training windows; ``past_steps`` L_p; ``runtime`` of the on-drone predictor;
-    ``weights_dtype`` number format of the model weights exchanged by DroneFL (``float32`` or
-    ``float16``); ``pretrained`` folder of the pretrained models; ``pretrain_rounds`` their FL
-    rounds and ``pretrain_seconds`` the crop field recorded for them; ``animate`` also writes
-    the GIF; ``resume`` reuses a finished episode in ``out`` and else continues from its
-    checkpoint (:mod:`dronefl.experiments.loop_checkpoint`) when there is one.
+    ``filtered``, the paper's; ``ground_truth``, an ablation) and ``label_drones`` which
+    drone learns from which label (:data:`dronefl.tracking.labels.LABEL_DRONES`: ``all``,
+    the paper; ``others``; ``lower``); ``fusion`` the cloud's
+    fusion method (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or
+    ``paper``); ``epochs`` local epochs per update and ``lr`` their Adam learning rate;
+    ``stride`` samples between training windows; ``past_steps`` L_p; ``runtime`` of the
+    on-drone predictor; ``weights_dtype`` number format of the model weights exchanged by
+    DroneFL (``float32`` or ``float16``); ``pretrained`` folder of the pretrained models;
+    ``pretrain_rounds`` their FL rounds and ``pretrain_seconds`` the crop field recorded for
+    them; ``animate`` also writes the GIF; ``resume`` reuses a finished episode in ``out``
+    and else continues from its checkpoint (:mod:`dronefl.experiments.loop_checkpoint`) when
+    there is one.
     """
 
     scenario: Scenario
@@ -111,8 +115,10 @@ class TrackConfig:
     detector: str = "projection"
     fl_period: float = 100.0
     labels: str = "smoothed"
+    label_drones: str = "all"
     fusion: str = "robust"
     epochs: int = 10
+    lr: float = 1e-3
     stride: int = 2
     past_steps: int = 10
     runtime: str = "onnx"
@@ -129,13 +135,17 @@ class TrackConfig:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(TRACK_METHODS)}")
         if self.labels not in LABEL_SOURCES:
             raise ValueError(f"--labels: {self.labels!r} is not one of {', '.join(LABEL_SOURCES)}")
+        if self.label_drones not in LABEL_DRONES:
+            raise ValueError(
+                f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
+            )
         if self.fusion not in FUSION_METHODS:
             raise ValueError(f"--fusion: {self.fusion!r} is not one of {', '.join(FUSION_METHODS)}")
         if self.weights_dtype not in WEIGHT_DTYPES:
             raise ValueError(
                 f"--weights-dtype: {self.weights_dtype!r} is not one of {', '.join(WEIGHT_DTYPES)}"
             )
-        for name in ("duration", "fl_period", "pretrain_seconds"):
+        for name in ("duration", "fl_period", "pretrain_seconds", "lr"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
         for name in ("epochs", "stride", "past_steps", "pretrain_rounds"):
@@ -226,7 +236,7 @@ def run_episode(config: TrackConfig, parts: LoopParts | None = None) -> EpisodeM
         (out / CHECKPOINT_NAME).unlink(missing_ok=True)
     setup = LearnerSetup(
         out, state, config.past_steps, config.stride, config.epochs, config.seed,
-        config.weights_dtype, resumed=saved is not None,
+        config.lr, config.weights_dtype, resumed=saved is not None,
     )  # fmt: skip
     if not config.learner.federated:
         return _fly(config, config.learner(setup), state, parts, saved)
@@ -271,10 +281,9 @@ class ClosedLoop:
     ) -> None:
         scenario = config.scenario
         self.config, self.scenario, self.learner = config, scenario, learner
-        kind = "large" if learner.model_kind == "centralized" else "dronefl"
-        model = build_model(predictor_config(kind, config.past_steps, 1))
-        model.load_state_dict(state)
-        self.predictor = TrajectoryPredictor(model, runtime=config.runtime)
+        self.model_kind = "large" if learner.model_kind == "centralized" else "dronefl"
+        shared = self._predictor(state)
+        self.predictors = {d.id: shared for d in scenario.drones}
         self.world = saved.world if saved else World(scenario, config.environment, config.seed)
         self.cloud_vision = learner.cloud_predicts and config.detector == "yolo"
         if self.cloud_vision:
@@ -317,7 +326,7 @@ class ClosedLoop:
             detector=self.detector.state(),
             planner=self.planner.state(),
             learner=self.learner.state(),
-            predictor=self.predictor.model.state_dict(),
+            predictors={d: p.model.state_dict() for d, p in self.predictors.items()},
             planner_seconds=self.planner_seconds,
             fl_seconds=self.fl_seconds,
             wall_seconds=wall_seconds,
@@ -329,7 +338,7 @@ class ClosedLoop:
         self.detector.restore(saved.detector)
         self.planner.restore(saved.planner)
         self.learner.restore(saved.learner)
-        self.predictor.load_state(saved.predictor)
+        self.predictors = {d: self._predictor(s) for d, s in saved.predictors.items()}
         self.planner_seconds, self.fl_seconds = saved.planner_seconds, saved.fl_seconds
 
     def step(self, k: int) -> None:
@@ -363,10 +372,17 @@ class ClosedLoop:
             return
         started = time.perf_counter()
         labels = self._labels(k + 1)
+        if not np.isfinite(labels).any():  # no drone has a label (see --label-drones)
+            return
         update = self.learner.update(self.records, labels, len(self.rounds) + 1)
         if update is None:
             return
-        self.predictor.load_state(update.state)
+        # A drone that had no label sat the round out: it keeps the model it flies (the
+        # round's model learnt nothing from it and may have forgotten its altitude).
+        new = self._predictor(update.state)
+        for record, own in zip(self.records, labels, strict=True):
+            if np.isfinite(own).any() or self.learner.cloud_predicts:
+                self.predictors[record.drone_id] = new
         seconds = time.perf_counter() - started
         self.fl_seconds += seconds
         for way, per_drone in (("down", update.weight_bytes_down), ("up", update.weight_bytes_up)):
@@ -389,12 +405,18 @@ class ClosedLoop:
         """Record the truth after the last step."""
         self._record_truth(self.n_steps)
 
+    def _predictor(self, state: dict[str, torch.Tensor]) -> TrajectoryPredictor:
+        """A predictor (its runtime compiled) with the weights ``state``."""
+        model = build_model(predictor_config(self.model_kind, self.config.past_steps, 1))
+        model.load_state_dict(state)
+        return TrajectoryPredictor(model, runtime=self.config.runtime)
+
     def _predict(self, k: int, i: int, record: OnboardRecord) -> list[PositionMeasurement]:
         """Drone ``i``'s predictions of its assigned targets as the cloud receives them."""
         window = record.window(self.config.past_steps)
         if window is None:
             return []
-        predicted = self.predictor.predict(*window)[:, 0]  # (n_assigned, 2) m
+        predicted = self.predictors[record.drone_id].predict(*window)[:, 0]  # (n_assigned, 2) m
         assigned = record.target_ids[record.assigned]
         seen = np.isfinite(predicted).all(axis=1)
         ids, positions = tuple(int(t) for t in assigned[seen]), predicted[seen]
@@ -440,12 +462,18 @@ class ClosedLoop:
             self.log.trace[k, self.column[target_id]] = np.trace(track.covariance)
 
     def _labels(self, steps: int) -> np.ndarray:
-        """Training labels ``(steps, N, 2)`` m for the first ``steps`` steps, NaN where there
-        is none (:func:`dronefl.tracking.make_labels`: smoothed or filtered fused tracks, or the
-        truth as an ablation)."""
+        """Each drone's training labels ``(M, steps, N, 2)`` m for the first ``steps`` steps,
+        NaN where it has none (:func:`dronefl.tracking.make_labels`: smoothed or filtered fused
+        tracks, or the truth as an ablation; :func:`dronefl.tracking.labels.label_drones`: which
+        drone learns from which)."""
         truth = self.log.target_position[:steps]
         labels = make_labels(self.config.labels, self.fuser, self.log.t[:steps], truth=truth)
-        return labels.position
+        # Step t's label fuses the predictions made at step t - 1.
+        predicted = np.zeros((steps, *self.log.prediction.shape[1:3]), dtype=bool)
+        predicted[1:] = np.isfinite(self.log.prediction[: steps - 1]).all(axis=-1)
+        altitudes = [d.altitude for d in self.scenario.drones]
+        mask = label_drones(predicted, altitudes, self.config.label_drones)
+        return np.where(mask[..., None], labels.position[None], np.nan)
 
 
 def _fly(

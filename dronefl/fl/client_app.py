@@ -41,7 +41,7 @@ from dronefl.fl.records import (
 )
 from dronefl.io import atomic_savez
 from dronefl.models.model import TrajectoryTransformer, build_model
-from dronefl.models.train import evaluate, proximal_term, train_local
+from dronefl.models.train import TrainStats, evaluate, proximal_term, train_local
 from dronefl.models.windows import WindowSet, WindowSpec, load_drone_split
 
 
@@ -75,7 +75,10 @@ def handle_train(msg: Message, context: Context, settings: FlSettings) -> Messag
     if instructions.proximal_mu > 0:
         regularizer = proximal_term(global_state, instructions.proximal_mu)
     config = settings.train_config(instructions.server_round, drone_id)
-    stats = train_local(model, train_set, config, regularizer)
+    if len(train_set) == 0:  # no labelled window (yet): the server leaves this drone out
+        stats = TrainStats(0, float("nan"), 0.0)
+    else:
+        stats = train_local(model, train_set, config, regularizer)
     state = model.state_dict()
     if settings.method_spec.personal:
         head = {k: v for k, v in state.items() if k.startswith(TrajectoryTransformer.HEAD)}

@@ -33,11 +33,12 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class LearnerSetup:
-    """What a learner is built from: the episode folder ``out``, the pretrained weights
-    ``state``, the windows (``past_steps`` L_p, ``stride`` samples between windows; L_f = 1),
-    ``epochs`` per update, ``seed``, ``weights_dtype`` on the wire, for a federated learner
-    the episode's Flower round ``driver``, and whether the episode is ``resumed`` from a
-    checkpoint (the files of the updates before it are then kept)."""
+    """What a learner is built from: the episode folder ``out``, the pretrained weights ``state``,
+    the windows (``past_steps`` L_p, ``stride`` samples between windows; L_f = 1),
+    ``epochs`` per update, ``seed``, Adam's learning rate ``lr``, ``weights_dtype`` on the
+    wire, for a federated learner the episode's Flower round ``driver``, and whether the
+    episode is ``resumed`` from a checkpoint (the files of the updates before it are then
+    kept)."""
 
     out: Path
     state: dict[str, torch.Tensor]
@@ -45,6 +46,7 @@ class LearnerSetup:
     stride: int
     epochs: int
     seed: int
+    lr: float = 1e-3
     weights_dtype: str = "float32"
     driver: RoundDriver | None = None
     resumed: bool = False
@@ -77,8 +79,9 @@ class Learner(ABC):
     def update(
         self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
     ) -> ModelUpdate | None:
-        """Learn from ``records`` labelled by ``labels`` ``(steps, N, 2)`` m (column j is
-        target ``records[0].target_ids[j]``; NaN where there is no label) in update number
+        """Learn from ``records``, record ``i`` labelled by ``labels[i]`` ``(steps, N, 2)`` m
+        (``labels`` ``(M, steps, N, 2)``; column j is target ``records[0].target_ids[j]``; NaN
+        where that drone has no label) in update number
         ``server_round`` (1, 2, ...); ``None`` if the method does not update its models."""
 
     def state(self) -> object:

@@ -31,12 +31,12 @@ class CentralizedLearner(Learner):
         setup = self.setup
         spec = WindowSpec(setup.past_steps, 1, relative=True, stride=setup.stride)
         windows = []
-        for record in records:
+        for record, own in zip(records, labels, strict=True):
             log = record.to_log()
-            pseudo = PseudoLabels(log.t, record.target_ids, labels[: len(log.t)])
+            pseudo = PseudoLabels(log.t, record.target_ids, own[: len(log.t)])
             windows.append(build_windows(log, pseudo.for_log(log), spec))
         seed = setup.seed * 1_000_003 + server_round
-        stats = train_pooled(self.model, windows, TrainConfig(setup.epochs, 1e-3, 128, seed))
+        stats = train_pooled(self.model, windows, TrainConfig(setup.epochs, setup.lr, 128, seed))
         return ModelUpdate(self.model.state_dict(), {0: stats.loss})
 
     def state(self) -> dict[str, torch.Tensor]:

@@ -33,6 +33,7 @@ def session_settings(setup: LearnerSetup) -> FlSettings:
         future_steps=1,
         stride=setup.stride,
         epochs=setup.epochs,
+        lr=setup.lr,
         seed=setup.seed,
         labels="tracks",
         weights_dtype=setup.weights_dtype,
@@ -100,9 +101,11 @@ class FederatedLearner(Learner):
 
 
 def write_round_data(folder: Path, records: list[OnboardRecord], labels: np.ndarray) -> None:
-    """Every drone's onboard log (``drone_<id>.npz``) and the labels (``tracks.npz``)."""
+    """Every drone's onboard log (``drone_<id>.npz``) and its labels (``tracks_<id>.npz``;
+    ``labels`` ``(M, steps, N, 2)`` m in ``records`` order)."""
     folder.mkdir(parents=True, exist_ok=True)
-    for record in records:
-        record.to_log().save(folder / f"drone_{record.drone_id}.npz")
-    t = records[0].t[: records[0].steps]
-    PseudoLabels(t, records[0].target_ids, labels[: len(t)]).save(folder / "tracks.npz")
+    for record, own in zip(records, labels, strict=True):
+        log = record.to_log()
+        log.save(folder / f"drone_{record.drone_id}.npz")
+        pseudo = PseudoLabels(log.t, record.target_ids, own[: len(log.t)])
+        pseudo.save(folder / f"tracks_{record.drone_id}.npz")

@@ -237,13 +237,14 @@ def split_windows(
 
     The first ``train_fraction`` of the steps give the training windows, the rest the test
     windows; no window straddles the split, so no test step is ever seen in training. With
-    ``train_fraction`` 1 the test set is empty.
+    ``train_fraction`` 1 (online rounds on pseudo-labels) the test set is empty, and so may the
+    training set be (no window with a label): the drone then sits the round out.
     """
     n_steps = log.t.shape[0]
     split = int(n_steps * spec.train_fraction)
     train = build_windows(log, labels, spec, (0, split))
     test = build_windows(log, labels, spec, (split, n_steps))
-    if len(train) == 0 or (len(test) == 0 and spec.train_fraction < 1.0):
+    if spec.train_fraction < 1.0 and (len(train) == 0 or len(test) == 0):
         raise ValueError(
             f"drone {log.drone_id}: too few detected windows for a train/test split "
             f"({len(train)} train, {len(test)} test)"
@@ -255,10 +256,13 @@ def load_drone_split(
     run_dir: str | Path, drone_id: int, spec: WindowSpec, labels: str = "ground_truth"
 ) -> tuple[WindowSet, WindowSet]:
     """Train/test windows of drone ``drone_id`` of a recorded run, labelled by ground truth
-    or, with ``labels="tracks"``, by the pseudo-labels in ``tracks.npz``."""
+    or, with ``labels="tracks"``, by the pseudo-labels the cloud made for it:
+    ``tracks_<id>.npz`` (the closed loop's round folders, one file per drone) or, in a folder
+    without one, ``tracks.npz`` (a drone's own disk in a deployment, or labels for all)."""
     if labels == "tracks":
         log = OnboardLog.load(Path(run_dir) / f"drone_{drone_id}.npz")
-        pseudo = PseudoLabels.load(Path(run_dir) / "tracks.npz")
+        own = Path(run_dir) / f"tracks_{drone_id}.npz"
+        pseudo = PseudoLabels.load(own if own.is_file() else Path(run_dir) / "tracks.npz")
         return split_windows(log, pseudo.for_log(log), spec)
     logs, truth = load_run(run_dir)
     if drone_id not in logs:

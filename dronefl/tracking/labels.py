@@ -6,7 +6,7 @@ time ``t`` also uses the predictions made after ``t``; :class:`FilteredLabels` g
 tracks (the paper's labels) and :class:`GroundTruthLabels` the simulator's truth (the ablation).
 A label whose position std exceeds ``max_std`` (a target nobody saw for a while) is dropped
 (NaN), so the windows built on it are not trained on. One class per source, registered in
-:data:`LABEL_SOURCES`.
+:data:`LABEL_SOURCES`. :func:`label_drones` says which drone learns from which label.
 
 Use at round time, with the episode's time grid ``t`` ``(T,)`` (index ``k`` = time ``k dt``)::
 
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -124,6 +125,40 @@ class GroundTruthLabels(LabelSource):
             raise ValueError(f"ground_truth labels need truth of shape {shape}")
         position = np.asarray(truth, dtype=float).copy()
         return Labels(self.name, t, np.array(fuser.target_ids), position, np.zeros(shape[:2]))
+
+
+#: Which drones learn from a label (``--label-drones``): ``all`` (the paper: every drone that
+#: observed the target); ``others``: drone i only from labels of steps at which its own and
+#: another drone's prediction of the target reached the cloud (a label of its own predictions
+#: alone teaches it nothing new); ``lower``: at which its own and that of a drone flying lower
+#: did (a downward camera's ground error grows with altitude, so the label holds a better view
+#: than its own).
+LABEL_DRONES = ("all", "others", "lower")
+
+
+def label_drones(predicted: np.ndarray, altitudes: Sequence[float], rule: str) -> np.ndarray:
+    """Which drone learns from which label under ``rule`` (a name in :data:`LABEL_DRONES`).
+
+    ``predicted`` ``(T, M, N)`` bool: drone ``i``'s prediction of target ``j`` for time step
+    ``t`` reached the cloud; ``altitudes`` ``(M,)`` m. Returns ``(M, T, N)`` bool: drone ``i``
+    trains on the label of target ``j`` at step ``t``.
+    """
+    if rule not in LABEL_DRONES:
+        raise ValueError(f"label drones: unknown rule {rule!r} ({', '.join(LABEL_DRONES)})")
+    predicted = np.asarray(predicted, dtype=bool)
+    altitudes = np.asarray(altitudes, dtype=float)
+    n_steps, n_drones, n_targets = predicted.shape
+    if altitudes.shape != (n_drones,):
+        raise ValueError(f"altitudes: expected shape ({n_drones},), got {altitudes.shape}")
+    if rule == "all":
+        return np.ones((n_drones, n_steps, n_targets), dtype=bool)
+    out = np.zeros((n_drones, n_steps, n_targets), dtype=bool)
+    for i in range(n_drones):
+        sources = np.arange(n_drones) != i
+        if rule == "lower":
+            sources &= altitudes < altitudes[i]
+        out[i] = predicted[:, i] & predicted[:, sources].any(axis=1)
+    return out
 
 
 #: Label sources by name (``--labels``).

@@ -1,16 +1,19 @@
 """The closed loop: metrics by hand, the onboard record, pseudo-labels, a short episode."""
 
 import json
+import pickle
 
 import numpy as np
 import pytest
+import torch
 from PIL import Image
 
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
+from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.pretrain import PretrainSpec
 from dronefl.experiments.track import TrackConfig, run_episode
-from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
+from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.logs import LogError, PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
@@ -144,3 +147,37 @@ def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, 
         assert comm.kb_per_s(drone, "down", "control") == pytest.approx(14 * 5 / 1000)
     assert ("up", "predictions") not in comm.kinds()
     assert metrics.tracking.prediction_coverage > 0.0
+
+
+def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained, tmp_path):
+    # Case 2's quick model: the Case 1 one (the model is the same for any scenario).
+    pretrained = tmp_path / "pretrained"
+    case1 = _paths(PretrainSpec(load_scenario("case1"), "dronefl"), quick_pretrained)
+    state = load_checkpoint(*case1, "dronefl").state
+    save_checkpoint(
+        *_paths(PretrainSpec(load_scenario("case2"), "dronefl"), pretrained),
+        Checkpoint("dronefl", 20, state, []),
+    )
+    config = TrackConfig(
+        scenario=load_scenario("case2"), method="dronefl", seed=3, duration=40.0,
+        environment="crop_field", fl_period=20.0, epochs=1, label_drones="lower",
+        runtime="torch", pretrained=pretrained, out=tmp_path / "episode", progress=False,
+        animate=False,
+    )  # fmt: skip
+    metrics = run_episode(config)
+
+    # Drone 3 flies lowest (25 m): no label of its holds a lower view, so it sits out the
+    # round and keeps flying the pretrained model; drone 1 (45 m) learns from drones 2-3.
+    (only,) = metrics.fl_rounds
+    assert 1 in only.train_loss and 3 not in only.train_loss
+    assert "drone 3: no training examples" in only.rejected
+    with (tmp_path / "episode" / CHECKPOINT_NAME).open("rb") as handle:
+        predictors = pickle.load(handle).predictors
+    for key, value in state.items():
+        assert torch.equal(predictors[3][key], value), key
+    assert not torch.equal(predictors[1]["embed.weight"], state["embed.weight"])
+
+
+def _paths(spec: PretrainSpec, folder):
+    settings = spec.settings(folder)
+    return settings.checkpoint_path, settings.history_path

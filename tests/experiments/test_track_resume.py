@@ -64,8 +64,9 @@ def outcome(out: Path) -> tuple[dict, dict, list, dict, list[int]]:
     with np.load(out / "fl" / "global" / "checkpoint.npz") as npz:
         weights = {k: npz[k] for k in npz.files}
     with (out / CHECKPOINT_NAME).open("rb") as handle:  # the drones' predictor at the end
-        predictor = pickle.load(handle).predictor
-    weights |= {f"predictor:{k}": v.numpy() for k, v in predictor.items()}
+        predictors = pickle.load(handle).predictors
+    for drone, state in predictors.items():
+        weights |= {f"predictor {drone}:{k}": v.numpy() for k, v in state.items()}
     return metrics, episode, history, weights, sizes
 
 

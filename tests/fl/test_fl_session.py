@@ -2,12 +2,15 @@
 
 import shutil
 
+import numpy as np
 import pytest
 import torch
 
 from dronefl.fl.records import FlSettings
 from dronefl.fl.server_app import initial_state
 from dronefl.fl.simulation import run_session
+from dronefl.logs import PseudoLabels, load_run
+from dronefl.models.windows import load_drone_split
 
 
 @pytest.mark.slow
@@ -54,3 +57,31 @@ def test_an_error_in_the_episode_reaches_the_caller(case1_run, tmp_path):
 
     with pytest.raises(ValueError, match="planner diverged"):
         run_session(settings, 2, episode)
+
+
+@pytest.mark.slow
+def test_a_drone_without_labelled_windows_is_left_out_of_the_round(case1_run, tmp_path):
+    # Prepare: pseudo-labels for target 1 only (what min_views = 2 leaves when only target 1
+    # is seen twice); in Case 1 drone 2 follows target 2 alone, so it has no labelled window.
+    data = tmp_path / "round_01"
+    shutil.copytree(case1_run, data)
+    logs, truth = load_run(data)
+    position = truth.target_position.copy()
+    position[:, truth.target_column(2)] = np.nan
+    PseudoLabels(truth.t, truth.target_ids, position).save(data / "tracks.npz")
+    settings = FlSettings(str(data), str(tmp_path / "global"), rounds=1, epochs=1, stride=5,
+                          labels="tracks", train_fraction=1.0)  # fmt: skip
+    windows = {d: len(load_drone_split(data, d, settings.windows, "tracks")[0]) for d in logs}
+    assert windows[1] > 0 and windows[2] == 0, windows
+    start = initial_state(settings)
+
+    # Execute
+    state, history = run_session(
+        settings, 2, lambda driver: (driver.play(start, 1, run_dir=str(data)), driver.history)
+    )
+
+    # Assert: drone 1 alone trained, drone 2 left out with the reason, no error.
+    (entry,) = history
+    assert sorted(entry.train_loss) == [1]
+    assert entry.rejected == ("drone 2: no training examples",)
+    assert not torch.equal(state["embed.weight"], start["embed.weight"])

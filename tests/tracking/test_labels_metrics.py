@@ -14,6 +14,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
+from dronefl.tracking.labels import label_drones
 
 DT = 0.2  # s
 
@@ -90,3 +91,24 @@ def test_ospa_and_gospa_by_hand():
         set_distances(truth, tracks, DT, order=0.5)
     with pytest.raises(ValueError, match=r"\(K, N, 2\)"):
         set_distances(truth[:, :1], tracks, DT)
+
+
+def test_label_drones_by_rule():
+    # Step 0: drones 1 (60 m) and 2 (40 m) see target 1; step 1: drone 1 alone; drone 3 (20 m)
+    # sees target 2 at both steps.
+    predicted = np.zeros((2, 3, 2), dtype=bool)
+    predicted[0, :2, 0] = True
+    predicted[1, 0, 0] = True
+    predicted[:, 2, 1] = True
+    altitudes = [60.0, 40.0, 20.0]
+    assert label_drones(predicted, altitudes, "all").all()
+    others = label_drones(predicted, altitudes, "others")
+    assert others[:, :, 0].tolist() == [[True, False], [True, False], [False, False]]
+    assert not others[:, :, 1].any()  # drone 3 alone sees target 2
+    lower = label_drones(predicted, altitudes, "lower")
+    assert lower[:, :, 0].tolist() == [[True, False], [False, False], [False, False]]
+    assert not lower[:, :, 1].any()
+    with pytest.raises(ValueError, match="unknown rule"):
+        label_drones(predicted, altitudes, "best")
+    with pytest.raises(ValueError, match="altitudes"):
+        label_drones(predicted, altitudes[:2], "lower")
