@@ -94,9 +94,9 @@ class TrackConfig:
     (:data:`dronefl.tracking.LABEL_SOURCES`: ``smoothed`` fused tracks, the default;
     ``filtered``, the paper's; ``ground_truth``, an ablation) and ``label_drones`` which
     drone learns from which label (:data:`dronefl.tracking.labels.LABEL_DRONES`: ``all``,
-    the paper; ``others``; ``lower``); ``fusion`` the cloud's
-    fusion method (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or
-    ``paper``); ``epochs`` local epochs per update and ``lr`` their Adam learning rate;
+    the paper; ``others``; ``lower``); ``fusion`` the cloud's fusion method
+    (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``);
+    ``epochs`` local epochs per update and ``lr`` their Adam learning rate;
     ``stride`` samples between training windows; ``past_steps`` L_p; ``runtime`` of the
     on-drone predictor; ``weights_dtype`` number format of the model weights exchanged by
     DroneFL (``float32`` or ``float16``); ``pretrained`` folder of the pretrained models;
