@@ -269,7 +269,9 @@ PSEUDO_LABEL_FORMAT = "dronefl.pseudo_labels"
 class PseudoLabels:
     """Target positions that stand in for ground truth when training in the field: the cloud's
     fused EKF tracks (``position`` ``(T, N, 2)`` m on the drones' time grid ``t`` ``(T,)``, NaN
-    where no track existed), saved as ``tracks.npz`` beside the onboard logs of an FL round."""
+    where no track existed), saved beside the onboard logs of an FL round: ``tracks_<id>.npz``,
+    drone ``id``'s own, in the closed loop's round folders; ``tracks.npz`` on a deployed
+    drone's disk."""
 
     t: np.ndarray
     target_ids: np.ndarray

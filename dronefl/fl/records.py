@@ -63,7 +63,8 @@ class FlSettings:
     ``batch_size`` local training; ``proximal_mu`` FedProx's mu (used by ``fedprox`` only);
     ``seed`` model initialisation and training seeds; ``resume`` continue from the checkpoint;
     ``labels`` ``ground_truth`` (``ground_truth.npz``) or ``tracks`` (the cloud's fused tracks in
-    ``tracks.npz``: pseudo-labels, as in the closed loop); ``weights_dtype`` the number format
+    ``tracks_<id>.npz`` or ``tracks.npz``: pseudo-labels, as in the closed loop; see
+    :func:`~dronefl.models.windows.load_drone_split`); ``weights_dtype`` the number format
     of the weights on the wire (``float16`` halves the bytes; training stays in fp32);
     ``train_fraction`` the chronologically first part of each drone's windows it trains on, the
     rest being its test set (1.0: train on everything and skip federated evaluation, as in the
