@@ -25,12 +25,23 @@ from dronefl.results import ResultError
 METRICS: tuple[str, ...] = (
     "prediction_error", "tracking_distance", "uncertainty", "speed_change", "total_cost",
 )  # fmt: skip
+#: Multi-target set distances of the fused tracks (m), beside the paper's columns.
+SET_METRICS: tuple[str, ...] = ("ospa", "gospa")
+#: Every column a :class:`Table1Row` holds.
+COLUMNS: tuple[str, ...] = METRICS + SET_METRICS
+
+
+def episode_value(episode: EpisodeMetrics, column: str) -> float:
+    """``column`` (one of :data:`COLUMNS`) of one episode."""
+    source = episode.set_distances if column in SET_METRICS else episode.tracking
+    return float(getattr(source, column))
 
 
 @dataclass(frozen=True)
 class Table1Row:
     """One (scenario, method) of Table I: ``mean`` and ``std`` over ``seeds`` of each of
-    :data:`METRICS` (units as in :class:`TrackingMetrics`) and the mean wall time (s)."""
+    :data:`COLUMNS` (units as in :class:`TrackingMetrics` and :class:`SetDistances`) and the
+    mean wall time (s)."""
 
     scenario: str
     method: str
@@ -78,7 +89,7 @@ def summarize(episodes: list[EpisodeMetrics]) -> list[Table1Row]:
         groups.setdefault((e.scenario, e.method), []).append(e)
     rows = []
     for (scenario, method), group in groups.items():
-        values = {m: [getattr(e.tracking, m) for e in group] for m in METRICS}
+        values = {m: [episode_value(e, m) for e in group] for m in COLUMNS}
         rows.append(
             Table1Row(
                 scenario=scenario,

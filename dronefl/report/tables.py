@@ -6,9 +6,10 @@ import csv
 import io
 
 from dronefl.experiments.episode import EpisodeMetrics
-from dronefl.experiments.table1 import METRICS, Table1Row
+from dronefl.experiments.table1 import COLUMNS, Table1Row, episode_value
 
-#: The paper's Table I (mean, std) per (scenario, method), in :data:`METRICS` order.
+#: The paper's Table I (mean, std) per (scenario, method), in Table I's column order
+#: (:data:`dronefl.experiments.table1.METRICS`).
 PAPER_TABLE1: dict[tuple[str, str], tuple[tuple[float, float], ...]] = {
     ("case1", "centralized"): (
         (0.99, 0.40),
@@ -97,11 +98,12 @@ def table1_markdown(rows: list[Table1Row]) -> str:
     DroneFL's change against fixed distributed per scenario."""
     lines = [
         "| scenario | method | pred. error (m²) | track. distance (m²) | uncertainty (Tr P) "
-        "| speed change (m/s) | total cost | paper: pred. error / track. distance |",
-        "|---|---|---|---|---|---|---|---|",
+        "| speed change (m/s) | total cost | OSPA (m) | GOSPA (m) "
+        "| paper: pred. error / track. distance |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
-        cells = " | ".join(f"{row.mean[m]:.2f} ± {row.std[m]:.2f}" for m in METRICS)
+        cells = " | ".join(f"{row.mean[m]:.2f} ± {row.std[m]:.2f}" for m in COLUMNS)
         paper = PAPER_TABLE1.get((row.scenario, row.method))
         ref = f"{paper[0][0]:.2f} / {paper[1][0]:.2f}" if paper else "–"
         lines.append(f"| {row.scenario} | {row.method} (n={len(row.seeds)}) | {cells} | {ref} |")
@@ -121,11 +123,12 @@ def table1_markdown(rows: list[Table1Row]) -> str:
 
 
 def table1_csv(episodes: list[EpisodeMetrics]) -> str:
-    """One CSV line per episode: scenario, method, seed, Table I's metrics, wall time (s)."""
+    """One CSV line per episode: scenario, method, seed, Table I's metrics, OSPA and GOSPA
+    (m), wall time (s)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
-    writer.writerow(["scenario", "method", "seed", *METRICS, "wall_seconds"])
+    writer.writerow(["scenario", "method", "seed", *COLUMNS, "wall_seconds"])
     for e in episodes:
-        values = [getattr(e.tracking, m) for m in METRICS]
+        values = [episode_value(e, m) for m in COLUMNS]
         writer.writerow([e.scenario, e.method, e.seed, *values, e.wall_seconds])
     return buffer.getvalue()

@@ -14,7 +14,7 @@ from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.fl_offline import OfflineResults
-from dronefl.experiments.table1 import run_table1
+from dronefl.experiments.table1 import METRICS, run_table1
 from dronefl.experiments.track import TRACK_METHODS, TrackConfig
 
 SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
@@ -103,6 +103,14 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     assert [e.method for e in episodes] == list(TRACK_METHODS)
     assert {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")} == before
     table = (out / "table1.md").read_text()
-    for method in TRACK_METHODS:
-        assert f"| farm_5x8 | {method} (n=1) |" in table
+    for method, episode in zip(TRACK_METHODS, episodes, strict=True):
+        (line,) = [row for row in table.splitlines() if f"| farm_5x8 | {method} (n=1) |" in row]
+        distances = episode.set_distances
+        assert f"| {distances.ospa:.2f} ± 0.00 | {distances.gospa:.2f} ± 0.00 |" in line
+    header, *lines = (out / "table1.csv").read_text().splitlines()
+    assert header.split(",")[3:-1] == [*METRICS, "ospa", "gospa"]
+    assert [float(v) for v in lines[0].split(",")[-3:-1]] == [
+        episodes[0].set_distances.ospa,
+        episodes[0].set_distances.gospa,
+    ]
     assert (out / "table1.png").stat().st_size > 10_000
