@@ -196,7 +196,12 @@ CaseOption = Annotated[
     int | None, typer.Option("--case", help="Paper case 1, 2 or 3 (same as --scenario caseN).")
 ]
 PresetOption = Annotated[
-    str, typer.Option("--config", help="Training setting: ours (tuned) | paper (E=10, Adam 1e-3).")
+    str,
+    typer.Option(
+        "--config",
+        help="Training setting: ours (the closed loop's) | paper (E=10, Adam 1e-3) | metric "
+        "(ours + box sizes x altitude, batch 64).",
+    ),
 ]
 
 
@@ -866,6 +871,7 @@ def cloud(
     superlink_port: Annotated[int, typer.Option(help="SuperLink port.")] = 7442,
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
+    label_drones: LabelDronesOption = "all",
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -896,6 +902,7 @@ def cloud(
             connect=connect,
             tls_dir=str(Path(tls_dir).resolve()) if tls_dir else "",
             start_timeout=start_timeout,
+            label_drones=label_drones,
         )
         fl = FlSettings(
             run_dir=str(out / "fl"),
@@ -933,6 +940,7 @@ def deploy_up(
     pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
         "runs/pretrained"
     ),
+    label_drones: LabelDronesOption = "all",
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -961,6 +969,7 @@ def deploy_up(
             epochs=epochs,
             pretrained=pretrained,
             restart_drones=restart_drones,
+            label_drones=label_drones,
         )
         metrics = run_deploy(config)
     typer.echo(format_metrics(metrics))

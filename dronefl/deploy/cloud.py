@@ -59,6 +59,7 @@ from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
 from dronefl.tracking import Fuser, PositionMeasurement, make_labels
+from dronefl.tracking.labels import LABEL_DRONES, drone_labels
 from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
 #: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
@@ -80,7 +81,9 @@ class CloudSettings:
     for the world, the drones and their SuperNodes to appear; ``round_timeout`` s for one FL
     message exchange; ``tls_dir`` the certificate folder (empty: no TLS); ``model`` the
     pretrained weights (a file written by :func:`~dronefl.deploy.clientapp.save_model`);
-    ``out`` where ``cloud.npz`` / ``cloud.json`` go.
+    ``out`` where ``cloud.npz`` / ``cloud.json`` go; ``label_drones`` which drone learns from
+    which label (:data:`~dronefl.tracking.labels.LABEL_DRONES`, as ``dronefl track
+    --label-drones``).
     """
 
     scenario: str
@@ -95,10 +98,15 @@ class CloudSettings:
     tls_dir: str = ""
     start_timeout: float = 120.0
     round_timeout: float = 300.0
+    label_drones: str = "all"
 
     def __post_init__(self) -> None:
         if self.method not in DEPLOY_METHODS:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
+        if self.label_drones not in LABEL_DRONES:
+            raise ValueError(
+                f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
+            )
         for name in ("duration", "fl_period", "deadline_ms", "start_timeout", "round_timeout"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
@@ -330,17 +338,29 @@ class CloudEpisode:
         """One FL round on the data of steps ``0 .. steps-1`` (the world waits meanwhile)."""
         started = time.perf_counter()
         server_round = len(self.rounds) + 1
-        # The same labels as `dronefl track`'s default: the fused tracks, RTS-smoothed.
+        # The same labels as `dronefl track`'s default: the fused tracks, RTS-smoothed, each
+        # drone's kept by the --label-drones rule.
         t = np.arange(steps) * self.scenario.dt
         smoothed = make_labels("smoothed", self.fuser, t).position
-        labels = LabelsMessage(server_round, self.scenario.target_ids, smoothed)
-        payload = labels.encode()
+        altitudes = [d.altitude for d in self.scenario.drones]
+        per_drone = dict(
+            zip(
+                self.scenario.drone_ids,
+                drone_labels(smoothed, self.prediction, altitudes, self.settings.label_drones),
+                strict=True,
+            )
+        )
+        if not any(np.isfinite(own).any() for own in per_drone.values()):
+            log(INFO, "round %d: no drone has a label (--label-drones); none played", server_round)
+            return
         ready = []
         for drone_id in self._alive_drones():
-            answer = self.link.request(FLUSH.format(id=drone_id), payload, timeout=30.0)
+            payload = LabelsMessage(server_round, self.scenario.target_ids, per_drone[drone_id])
+            data = payload.encode()
+            answer = self.link.request(FLUSH.format(id=drone_id), data, timeout=30.0)
             if answer == b"ok":
                 ready.append(drone_id)
-                self.counter.add(drone_id, "down", "labels", len(payload))
+                self.counter.add(drone_id, "down", "labels", len(data))
         absent = self._refresh_nodes(ready)
         # A drone that came back (restarted) is live before its new SuperNode has reached the
         # SuperLink (which polls every few seconds): wait a little for it rather than leave it out.
@@ -364,7 +384,7 @@ class CloudEpisode:
                 if trained:
                     self.state = new_state
                     traffic = {"down": dict(result.bytes_down), "up": dict(result.bytes_up)}
-                    weights = self._install(grid, server_round, nodes, traffic)
+                    weights = self._install(grid, server_round, nodes, set(trained), traffic)
         participants = tuple(sorted(trained))
         entry = DeployedRound(
             round=server_round,
@@ -388,10 +408,17 @@ class CloudEpisode:
         return f"drone/{drone_id}" in self.link.alive()
 
     def _install(
-        self, grid: DroneGrid, server_round: int, nodes: dict[int, int], traffic: dict
+        self,
+        grid: DroneGrid,
+        server_round: int,
+        nodes: dict[int, int],
+        trained: set[int],
+        traffic: dict,
     ) -> dict[str, dict[int, int]]:
-        """Send the new global model to every node of the round and have its drone load it;
-        returns (and counts) the round's weight bytes per drone, by direction."""
+        """Send the new global model to the nodes of the round whose drone trained in it and
+        have the drone load it (a drone that sat the round out keeps the model it flies, as in
+        ``dronefl track``); returns (and counts) the round's weight bytes per drone, by
+        direction."""
         weights: dict[str, dict[int, int]] = {"down": {}, "up": {}}
         for direction in DIRECTIONS:  # the round's training messages, shared evenly
             share = traffic.get(direction, {}).get("train", 0) // len(nodes)
@@ -404,7 +431,9 @@ class CloudEpisode:
             }
         )
         messages = [
-            Message(content, node, "query", group_id=f"install-{server_round}") for node in nodes
+            Message(content, node, "query", group_id=f"install-{server_round}")
+            for node, drone in nodes.items()
+            if drone in trained
         ]
         for message in messages:
             drone = nodes[message.metadata.dst_node_id]

@@ -30,6 +30,7 @@ from dronefl.deploy.cloud import DEPLOY_METHODS
 from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
+from dronefl.tracking.labels import LABEL_DRONES
 
 HOST = "127.0.0.1"
 
@@ -54,10 +55,15 @@ class DeployConfig:
     stride: int = 2
     pretrained: Path = Path("runs/pretrained")
     restart_drones: bool = False
+    label_drones: str = "all"
 
     def __post_init__(self) -> None:
         if self.method not in DEPLOY_METHODS:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
+        if self.label_drones not in LABEL_DRONES:
+            raise ValueError(
+                f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
+            )
         for name in ("duration", "fl_period", "deadline_ms", "start_timeout"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
@@ -179,6 +185,7 @@ def _commands(
             "--seed", str(config.seed),
             "--epochs", str(config.epochs),
             "--stride", str(config.stride),
+            "--label-drones", config.label_drones,
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

@@ -128,8 +128,8 @@ def decode_release(data: bytes) -> int:
 
 @dataclass(frozen=True)
 class LabelsMessage:
-    """The fused tracks ``position`` ``(T, N, 2)`` m of steps ``0 .. T-1`` for ``server_round``;
-    column ``j`` is ``target_ids[j]``."""
+    """The fused tracks ``position`` ``(T, N, 2)`` m of steps ``0 .. T-1`` for ``server_round``
+    (NaN where the drone has no label); column ``j`` is ``target_ids[j]``."""
 
     server_round: int
     target_ids: tuple[int, ...]

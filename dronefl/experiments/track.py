@@ -76,7 +76,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.labels import LABEL_DRONES, label_drones
+from dronefl.tracking.labels import LABEL_DRONES, drone_labels
 from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -468,12 +468,10 @@ class ClosedLoop:
         drone learns from which)."""
         truth = self.log.target_position[:steps]
         labels = make_labels(self.config.labels, self.fuser, self.log.t[:steps], truth=truth)
-        # Step t's label fuses the predictions made at step t - 1.
-        predicted = np.zeros((steps, *self.log.prediction.shape[1:3]), dtype=bool)
-        predicted[1:] = np.isfinite(self.log.prediction[: steps - 1]).all(axis=-1)
         altitudes = [d.altitude for d in self.scenario.drones]
-        mask = label_drones(predicted, altitudes, self.config.label_drones)
-        return np.where(mask[..., None], labels.position[None], np.nan)
+        return drone_labels(
+            labels.position, self.log.prediction, altitudes, self.config.label_drones
+        )
 
 
 def _fly(

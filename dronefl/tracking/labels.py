@@ -161,6 +161,31 @@ def label_drones(predicted: np.ndarray, altitudes: Sequence[float], rule: str) -
     return out
 
 
+def drone_labels(
+    position: np.ndarray, prediction: np.ndarray, altitudes: Sequence[float], rule: str
+) -> np.ndarray:
+    """Each drone's training labels ``(M, T, N, 2)`` m under ``rule`` (see :func:`label_drones`),
+    NaN where it has none: ``position`` ``(T, N, 2)`` m the labels of steps ``0 .. T-1`` (NaN
+    where there is none), ``prediction`` ``(T, M, N, 2)`` m the predictions that reached the
+    cloud at each step (NaN where none did; the prediction made at step ``t`` is of step
+    ``t + 1``, and so is the label it went into)."""
+    position = np.asarray(position, dtype=float)
+    prediction = np.asarray(prediction, dtype=float)
+    steps = position.shape[0]
+    if (
+        prediction.ndim != 4
+        or prediction.shape[0] < steps
+        or prediction.shape[2:] != position.shape[1:]
+    ):
+        raise ValueError(
+            f"prediction: expected (>= {steps}, M, {position.shape[1]}, 2), got {prediction.shape}"
+        )
+    predicted = np.zeros((steps, *prediction.shape[1:3]), dtype=bool)
+    predicted[1:] = np.isfinite(prediction[: steps - 1]).all(axis=-1)
+    mask = label_drones(predicted, altitudes, rule)
+    return np.where(mask[..., None], position[None], np.nan)
+
+
 #: Label sources by name (``--labels``).
 LABEL_SOURCES: dict[str, type[LabelSource]] = {
     "smoothed": SmoothedLabels,

@@ -14,7 +14,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.labels import label_drones
+from dronefl.tracking.labels import drone_labels, label_drones
 
 DT = 0.2  # s
 
@@ -112,3 +112,20 @@ def test_label_drones_by_rule():
         label_drones(predicted, altitudes, "best")
     with pytest.raises(ValueError, match="altitudes"):
         label_drones(predicted, altitudes[:2], "lower")
+
+
+def test_drone_labels_follow_the_predictions_one_step_later():
+    # Drones 1 (40 m) and 2 (20 m), one target; the prediction stored at step t is of t + 1.
+    position = np.arange(8, dtype=float).reshape(4, 1, 2)  # labels of steps 0-3
+    prediction = np.full((4, 2, 1, 2), np.nan)
+    prediction[0, 0] = prediction[0, 1] = 1.0  # both predicted step 1
+    prediction[1, 0] = 1.0  # drone 1 alone predicted step 2
+    prediction[2, 1] = 1.0  # drone 2 alone predicted step 3
+    lower = drone_labels(position, prediction, [40.0, 20.0], "lower")
+    assert lower.shape == (2, 4, 1, 2)
+    np.testing.assert_array_equal(lower[0, 1], position[1])  # drone 1 with drone 2 below it
+    assert np.isnan(lower[0, [0, 2, 3]]).all() and np.isnan(lower[1]).all()
+    every = drone_labels(position, prediction, [40.0, 20.0], "all")
+    np.testing.assert_array_equal(every, np.broadcast_to(position, (2, 4, 1, 2)))
+    with pytest.raises(ValueError, match="prediction"):
+        drone_labels(position, prediction[:, :, :0], [40.0, 20.0], "all")
