@@ -34,7 +34,7 @@ from dronefl.fl.records import FlSettings
 from dronefl.logs import load_run
 from dronefl.models.model import build_model
 from dronefl.models.train import evaluate, train_local
-from dronefl.models.windows import WindowSet, ground_truth_labels, split_windows
+from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels, split_windows
 
 
 def flat(state: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -54,8 +54,6 @@ def splits_of(settings: FlSettings, validation: bool) -> dict[int, tuple[WindowS
             continue
         n_train = int(log.t.shape[0] * spec.train_fraction)
         cut = int(n_train * 0.8)
-        from dronefl.models.windows import build_windows
-
         out[d] = (
             build_windows(log, labels, spec, (0, cut)),
             build_windows(log, labels, spec, (cut, n_train)),
@@ -86,6 +84,7 @@ def main() -> None:
     p.add_argument("--validation", action="store_true")
     p.add_argument("--sites", default=None, help="AdaIN sites, e.g. encoder,head")
     p.add_argument("--head-init", default=None, choices=("identity", "altitude"))
+    p.add_argument("--box-size", default=None, choices=("image", "metric"))
     p.add_argument("--every", type=int, default=5, help="print every N rounds")
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args()
@@ -107,11 +106,14 @@ def main() -> None:
         overrides["adain_sites"] = tuple(args.sites.split(","))
     if args.head_init is not None:
         overrides["head_style_init"] = args.head_init
+    if args.box_size is not None:
+        overrides["box_size"] = args.box_size
     model_config = replace(settings.model, **overrides)
     drones = list(splits)
     print(
         f"{args.method} {model_config.adain_sites if model_config.adain else 'no AdaIN'} "
-        f"head init {model_config.head_style_init} E={args.epochs} lr={args.lr} "
+        f"head init {model_config.head_style_init} box size {model_config.box_size} "
+        f"E={args.epochs} lr={args.lr} "
         f"decay={args.lr_decay} batch={args.batch} weighting={args.weighting} "
         f"server momentum {args.server_momentum} windows per drone (train/eval): "
         + ", ".join(f"{d}: {len(tr)}/{len(te)}" for d, (tr, te) in splits.items())

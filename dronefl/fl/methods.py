@@ -51,7 +51,11 @@ class Method:
 
     def predictor(self, past_steps: int, future_steps: int, **overrides: object) -> PredictorConfig:
         """The model this method trains for windows of ``past_steps`` -> ``future_steps``
-        (``overrides``: further :class:`PredictorConfig` fields, e.g. the AdaIN sites)."""
+        (``overrides``: further :class:`PredictorConfig` fields, e.g. the AdaIN sites). The
+        FL baselines' ``plain`` model always reads boxes as the image gives them, as the
+        paper's baselines do."""
+        if self.variant == "plain":
+            overrides = {**overrides, "box_size": "image"}
         return predictor_config(
             self.variant,
             past_steps,

@@ -4,7 +4,7 @@ Reading order: :class:`PredictorConfig` (what can be changed), the building bloc
 (:class:`AltitudeAdaIN`, :class:`Attention`, the encoder and decoder layers) and the model
 :class:`TrajectoryTransformer`, whose ``forward`` reads top to bottom::
 
-    features (B, L_p, F) --input projection--> (B, L_p, d) + sinusoidal positions
+    features (B, L_p, F) [box size x z / 50 m] --input projection--> (B, L_p, d) + positions
       -> [encoder layer -> + AdaIN(altitude)] x n_encoder_layers      memory (B, L_p, d)
     L_f learned queries (L_f, d) + sinusoidal positions L_p .. L_p + L_f - 1
       -> [decoder layer (self-attention, cross-attention to memory)] x n_decoder_layers
@@ -29,6 +29,13 @@ federated model ended 100x worse than the same model on pooled data). Two AdaIN 
   erase each window's mean, which says where the target is), starting as plain
   normalisation. It alone does not help (the paper preset keeps only it); with the head site
   it does a little (README).
+
+Box sizes. A vehicle of ground size s m seen from altitude h fills ``s / footprint(h)`` of the
+image: box width and height scale as 1 / h, so the same vehicle is 3x smaller at 60 m than
+at 20 m and every drone feeds the encoder inputs of its own scale. With ``box_size =
+"metric"`` the model multiplies the box width and height features by the step's altitude
+feature z / 50 m, which makes them proportional to the vehicle's ground size, the same on
+every drone; ``"image"`` (the paper's) reads them as the image gives them.
 """
 
 from __future__ import annotations
@@ -40,7 +47,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dronefl.models.windows import ALTITUDE_SCALE_M, FEATURE_DIM, PAPER_FIELD_M, PositionFrame
+from dronefl.models.windows import (
+    ALTITUDE_FEATURE,
+    ALTITUDE_SCALE_M,
+    BOX_SIZE_FEATURES,
+    FEATURE_DIM,
+    PAPER_FIELD_M,
+    PositionFrame,
+)
 
 Variant = Literal["dronefl", "plain", "large"]
 VARIANTS: tuple[str, ...] = ("dronefl", "plain", "large")
@@ -52,6 +66,9 @@ ADAIN_SITES: tuple[str, ...] = ("encoder", "head")
 #: normalisation) or ``altitude`` (mu = 0, sigma = h / ALTITUDE_SCALE_M: outputs in proportion
 #: to the altitude, as a camera footprint is).
 STYLE_INITS: tuple[str, ...] = ("identity", "altitude")
+#: How the model reads box width and height: ``image`` (fractions of the image, the paper's)
+#: or ``metric`` (times the step's altitude / 50 m: in proportion to the ground size).
+BOX_SIZES: tuple[str, ...] = ("image", "metric")
 
 
 @dataclass(frozen=True)
@@ -60,7 +77,9 @@ class PredictorConfig:
 
     ``past_steps`` L_p and ``future_steps`` L_f are in samples (0.2 s each at 5 Hz).
     ``adain`` turns on the altitude AdaIN layers at ``adain_sites`` (see :data:`ADAIN_SITES`),
-    the ``head`` one starting from ``head_style_init`` (see :data:`STYLE_INITS`); ``relative``
+    the ``head`` one starting from ``head_style_init`` (see :data:`STYLE_INITS`); ``box_size``
+    how box width and height are read (see :data:`BOX_SIZES`; ``metric`` needs the altitude
+    feature, so ``input_dim`` >= FEATURE_DIM); ``relative``
     means the model's inputs and outputs are horizontal positions relative to the drone at time
     t (position invariance), else absolute positions around the centre of a ``field_m`` =
     (width, height) m field; with ``field_m`` it sets the output scale and how windows must be
@@ -79,6 +98,7 @@ class PredictorConfig:
     adain: bool = True
     adain_sites: tuple[str, ...] = ("encoder", "head")
     head_style_init: str = "altitude"
+    box_size: str = "image"
     relative: bool = True
     field_m: tuple[float, float] = PAPER_FIELD_M
 
@@ -97,6 +117,15 @@ class PredictorConfig:
             raise ValueError(
                 f"PredictorConfig.head_style_init must be one of {STYLE_INITS}, "
                 f"got {self.head_style_init!r}"
+            )
+        if self.box_size not in BOX_SIZES:
+            raise ValueError(
+                f"PredictorConfig.box_size must be one of {BOX_SIZES}, got {self.box_size!r}"
+            )
+        if self.box_size == "metric" and self.input_dim < FEATURE_DIM:
+            raise ValueError(
+                f"PredictorConfig.box_size 'metric' needs the altitude feature: input_dim must "
+                f"be >= {FEATURE_DIM}, got {self.input_dim}"
             )
         for name in ("past_steps", "future_steps", "input_dim", "d_model", "n_heads", "d_ff"):
             if getattr(self, name) < 1:
@@ -341,6 +370,7 @@ class TrajectoryTransformer(nn.Module):
         )
         self.head = nn.Linear(d, 2)
         self.output_scale = config.frame.scale_m  # m per head unit
+        self.metric_box = config.box_size == "metric"
 
     def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
         b, t, f = features.shape
@@ -349,6 +379,8 @@ class TrajectoryTransformer(nn.Module):
                 f"features must have shape (B, {self.config.past_steps}, "
                 f"{self.config.input_dim}), got {tuple(features.shape)}"
             )
+        if self.metric_box:
+            features = metric_box_sizes(features)
         x = self.embed(features) + self.pe_past  # (B, L_p, d)
         for k, layer in enumerate(self.encoder):
             x = layer(x)
@@ -360,6 +392,17 @@ class TrajectoryTransformer(nn.Module):
         if self.head_adain is not None:
             y = self.head_adain(y, altitude)  # (B, L_f, d), gain and bias set by the altitude
         return self.head(y) * self.output_scale  # (B, L_f, 2) m
+
+
+def metric_box_sizes(features: torch.Tensor) -> torch.Tensor:
+    """``features`` (..., F) with box width and height multiplied by the altitude feature
+    z / 50 m of the same step: ``w' = w z / 50 m``, in proportion to the vehicle's ground
+    width (a box is ``s / (2 h tan(hfov / 2))`` of the image for a vehicle of s m). Missed
+    steps stay zero."""
+    scale = features[..., ALTITUDE_FEATURE : ALTITUDE_FEATURE + 1]
+    sizes = features[..., BOX_SIZE_FEATURES] * scale
+    first, last = BOX_SIZE_FEATURES.start, BOX_SIZE_FEATURES.stop
+    return torch.cat([features[..., :first], sizes, features[..., last:]], dim=-1)
 
 
 def build_model(config: PredictorConfig, seed: int = 0) -> TrajectoryTransformer:
@@ -388,5 +431,6 @@ def describe(config: PredictorConfig) -> str:
     return (
         f"d_model {config.d_model}, {config.n_heads} heads, {config.n_encoder_layers}+"
         f"{config.n_decoder_layers} layers, ff {config.d_ff}, L_p {config.past_steps}, "
-        f"L_f {config.future_steps}, adain {config.adain}, relative {config.relative}"
+        f"L_f {config.future_steps}, adain {config.adain}, box size {config.box_size}, "
+        f"relative {config.relative}"
     )

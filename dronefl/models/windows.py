@@ -44,6 +44,8 @@ SPEED_SCALE_MPS = 3.0  # m/s per unit of velocity (the drones' speed bound)
 BOX_SIZE_SCALE = 10.0  # box width/height multiplier (boxes are a few % of the image)
 BOX_DIM, ODOMETRY_DIM = 4, 12
 FEATURE_DIM = BOX_DIM + ODOMETRY_DIM + 1  # box, odometry, detected flag
+BOX_SIZE_FEATURES = slice(2, 4)  # the box's scaled width and height in a feature vector
+ALTITUDE_FEATURE = BOX_DIM + 2  # z / ALTITUDE_SCALE_M in a feature vector
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,7 @@
 """The records adapter and checkpoints: round trips and clear errors."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -113,5 +115,12 @@ def test_presets_set_the_training_and_the_adain_placement():
     assert (paper.epochs, paper.lr) == (10, 1e-3)
     assert paper.model.adain_sites == ("encoder",)
     assert PRESETS["ours"].apply(FlSettings("r", "o")) == FlSettings("r", "o")
+    assert (paper.model.box_size, paper.batch_size) == ("image", 128)
+    metric = PRESETS["metric"].apply(FlSettings("r", "o"))
+    assert (metric.model.box_size, metric.batch_size) == ("metric", 64)
+    # The FL baselines read boxes as the paper's do, whatever the preset.
+    assert replace(metric, method="fedavg").model.box_size == "image"
+    with pytest.raises(SettingsError, match="box_size"):
+        FlSettings("r", "o", box_size="pixels")
     with pytest.raises(SettingsError, match="adain_sites"):
         FlSettings("r", "o", adain_sites="decoder")

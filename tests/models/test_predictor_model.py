@@ -12,9 +12,15 @@ from dronefl.models.model import (
     _LastDimSoftmax,
     build_model,
     count_parameters,
+    metric_box_sizes,
     predictor_config,
 )
-from dronefl.models.windows import FEATURE_DIM, PositionFrame, window_features
+from dronefl.models.windows import (
+    ALTITUDE_SCALE_M,
+    FEATURE_DIM,
+    PositionFrame,
+    window_features,
+)
 
 
 def test_adain_output_has_the_styles_mean_and_std():
@@ -146,6 +152,38 @@ def test_missed_detections_do_not_change_the_prediction():
         for b in (boxes, junk)
     ]
     torch.testing.assert_close(outs[0], outs[1])
+
+
+def test_metric_box_sizes_by_hand():
+    # A 4 m vehicle under an 80 deg camera: footprint 2 h tan(40 deg) m, so the box width is
+    # 4 / footprint(h) of the image and w * 10 * h / 50 m is the same at 20 m and at 60 m.
+    footprint = 2 * np.tan(np.radians(40.0))
+    rows = []
+    for h in (20.0, 60.0):
+        boxes = np.tile([0.6, 0.4, 4.0 / (footprint * h), 2.0 / (footprint * h)], (3, 1))
+        odometry = np.zeros((3, 12))
+        odometry[:, 2] = h
+        detected = np.array([True, True, False])
+        rows.append(window_features(boxes, detected, odometry, np.zeros(2), PositionFrame()))
+    image = torch.from_numpy(np.stack(rows))  # (2 altitudes, 3 steps, F)
+    metric = metric_box_sizes(image)
+    expected = 10 * np.array([4.0, 2.0]) / (footprint * ALTITUDE_SCALE_M)
+    for k in range(2):
+        np.testing.assert_allclose(metric[k, :2, 2:4].numpy(), np.tile(expected, (2, 1)), rtol=1e-6)
+    assert image[0, 0, 2] == pytest.approx(3 * image[1, 0, 2])  # in image units: 3x apart
+    assert torch.equal(metric[:, 2], image[:, 2])  # a missed step stays all zero
+    untouched = [k for k in range(FEATURE_DIM) if k not in (2, 3)]
+    assert torch.equal(metric[..., untouched], image[..., untouched])
+
+
+def test_a_metric_model_is_an_image_model_fed_metric_sizes():
+    metric = build_model(predictor_config("dronefl", box_size="metric"), seed=2).eval()
+    image = build_model(predictor_config("dronefl"), seed=2).eval()
+    x, h = torch.rand(5, 10, FEATURE_DIM), torch.full((5,), 40.0)
+    torch.testing.assert_close(metric(x, h), image(metric_box_sizes(x), h))
+    assert not torch.allclose(metric(x, h), image(x, h))
+    with pytest.raises(ValueError, match="box_size"):
+        PredictorConfig(box_size="pixels")
 
 
 def test_same_seed_same_weights():
