@@ -355,12 +355,12 @@ class CloudEpisode:
             return
         ready = []
         for drone_id in self._alive_drones():
-            payload = LabelsMessage(server_round, self.scenario.target_ids, per_drone[drone_id])
-            data = payload.encode()
-            answer = self.link.request(FLUSH.format(id=drone_id), data, timeout=30.0)
+            labels = LabelsMessage(server_round, self.scenario.target_ids, per_drone[drone_id])
+            payload = labels.encode()
+            answer = self.link.request(FLUSH.format(id=drone_id), payload, timeout=30.0)
             if answer == b"ok":
                 ready.append(drone_id)
-                self.counter.add(drone_id, "down", "labels", len(data))
+                self.counter.add(drone_id, "down", "labels", len(payload))
         absent = self._refresh_nodes(ready)
         # A drone that came back (restarted) is live before its new SuperNode has reached the
         # SuperLink (which polls every few seconds): wait a little for it rather than leave it out.
