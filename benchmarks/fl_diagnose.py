@@ -32,7 +32,7 @@ import torch
 from dronefl.fl.methods import METHODS
 from dronefl.fl.records import FlSettings
 from dronefl.logs import load_run
-from dronefl.models.model import build_model
+from dronefl.models.model import BOX_SIZES, STYLE_INITS, build_model
 from dronefl.models.train import evaluate, train_local
 from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels, split_windows
 
@@ -83,8 +83,8 @@ def main() -> None:
     p.add_argument("--local", action="store_true")
     p.add_argument("--validation", action="store_true")
     p.add_argument("--sites", default=None, help="AdaIN sites, e.g. encoder,head")
-    p.add_argument("--head-init", default=None, choices=("identity", "altitude"))
-    p.add_argument("--box-size", default=None, choices=("image", "metric"))
+    p.add_argument("--head-init", default=None, choices=STYLE_INITS)
+    p.add_argument("--box-size", default=None, choices=BOX_SIZES)
     p.add_argument("--every", type=int, default=5, help="print every N rounds")
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args()
