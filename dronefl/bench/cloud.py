@@ -9,7 +9,9 @@ The fusion reference is filterpy's ``KalmanFilter`` (if installed): one per targ
 constant-velocity model, born at the same step, fed the same measurement stream sequentially,
 with a fixed R and no gating or adaptation, so it does less work per measurement than ours
 (the default ``robust`` method: consensus gating, Huber weights, adaptive R, and the forward
-pass recorded for the smoother).
+pass recorded for the smoother). It is timed in the same loop, on each step's measurements
+right before or after our fusion (the order alternating), so that both see the same load on a
+shared machine and the same caches (the planner's work between two updates leaves them cold).
 """
 
 from __future__ import annotations
@@ -49,12 +51,60 @@ def _start(scenario: Scenario) -> tuple[np.ndarray, np.ndarray, list[DroneState]
     return positions, velocities, drones
 
 
+class FilterpyFusion:
+    """The filterpy reference (see module doc) over one stream: :meth:`step` takes a step's
+    measurements and keeps the wall seconds it took in :attr:`seconds`."""
+
+    def __init__(self, dt: float, config: FusionConfig) -> None:
+        from filterpy.kalman import KalmanFilter
+
+        self._kalman_filter = KalmanFilter
+        self.model = ConstantVelocity(config.acceleration_psd)
+        self.f = self.model.transition_matrix(dt)
+        self.q = self.model.process_noise(np.zeros(4), dt)
+        self.h = self.model.measurement_matrix
+        self.r = config.initial_noise_std**2 * np.eye(2)
+        self.initial_speed_std = config.initial_speed_std
+        self.filters: dict[int, object] = {}
+        self.seconds: list[float] = []
+
+    def step(self, measurements: list[PositionMeasurement]) -> None:
+        """Predict every filter one step and update it with its target's measurements, in
+        drone order (a target's first measurements start its filter)."""
+        started = perf_counter()
+        for kf in self.filters.values():
+            kf.predict()
+        by_target: dict[int, list[PositionMeasurement]] = {}
+        for m in measurements:
+            by_target.setdefault(m.target_id, []).append(m)
+        for j, group in by_target.items():
+            group.sort(key=lambda m: m.drone_id)
+            if j not in self.filters:
+                born = np.mean([m.position for m in group], axis=0)
+                mean, cov = self.model.initial(born, self.r / len(group), self.initial_speed_std)
+                kf = self.filters[j] = self._kalman_filter(dim_x=4, dim_z=2)
+                kf.x, kf.P, kf.F, kf.Q, kf.H = mean, cov, self.f, self.q, self.h
+                continue
+            for m in group:
+                self.filters[j].update(m.position, R=self.r)
+        self.seconds.append(perf_counter() - started)
+
+    def states(self) -> dict[int, np.ndarray]:
+        """Every target's current state ``(4,)`` (m, m/s)."""
+        return {j: kf.x.copy() for j, kf in self.filters.items()}
+
+
 def fly(
-    scenario: Scenario, steps: int, config: FusionConfig, seed: int = 0
+    scenario: Scenario,
+    steps: int,
+    config: FusionConfig,
+    seed: int = 0,
+    reference: FilterpyFusion | None = None,
 ) -> tuple[np.ndarray, np.ndarray, list[list[PositionMeasurement]]]:
     """Run fusion and planning for ``steps`` steps; return the wall seconds of every fusion
     update and every planner step (forecast + plan), ``(steps,)`` each, and the measurements
-    of every step."""
+    of every step. ``reference``: also step it on every step's measurements, right after
+    our fusion on even steps and right before it on odd ones."""
     rng = np.random.default_rng(seed)
     dt = scenario.dt
     targets, velocities, drones = _start(scenario)
@@ -72,9 +122,13 @@ def fly(
                 noisy = position + rng.normal(0.0, 1.0, 2)
                 measurements.append(PositionMeasurement(d.drone_id, int(j), noisy))
         stream.append(measurements)
+        if reference is not None and step % 2:
+            reference.step(measurements)
         started = perf_counter()
         fuser.update((step + 1) * dt, measurements)
         fusion_s[step] = perf_counter() - started
+        if reference is not None and not step % 2:
+            reference.step(measurements)
         started = perf_counter()
         plan = planner.plan(drones, fuser.forecast(dt))
         plan_s[step] = perf_counter() - started
@@ -95,36 +149,10 @@ def filterpy_fusion(
 ) -> tuple[np.ndarray, dict[int, np.ndarray]]:
     """The filterpy reference on ``stream`` (see module doc): wall seconds per step ``(K,)``
     and every target's final state ``(4,)`` (m, m/s)."""
-    from filterpy.kalman import KalmanFilter
-
-    model = ConstantVelocity(config.acceleration_psd)
-    f, q, h = (
-        model.transition_matrix(dt),
-        model.process_noise(np.zeros(4), dt),
-        model.measurement_matrix,
-    )
-    r = config.initial_noise_std**2 * np.eye(2)
-    filters: dict[int, KalmanFilter] = {}
-    seconds = np.empty(len(stream))
-    for step, measurements in enumerate(stream):
-        started = perf_counter()
-        for kf in filters.values():
-            kf.predict()
-        by_target: dict[int, list[PositionMeasurement]] = {}
-        for m in measurements:
-            by_target.setdefault(m.target_id, []).append(m)
-        for j, group in by_target.items():
-            group.sort(key=lambda m: m.drone_id)
-            if j not in filters:
-                born = np.mean([m.position for m in group], axis=0)
-                mean, cov = model.initial(born, r / len(group), config.initial_speed_std)
-                kf = filters[j] = KalmanFilter(dim_x=4, dim_z=2)
-                kf.x, kf.P, kf.F, kf.Q, kf.H = mean, cov, f, q, h
-                continue
-            for m in group:
-                filters[j].update(m.position, R=r)
-        seconds[step] = perf_counter() - started
-    return seconds, {j: kf.x.copy() for j, kf in filters.items()}
+    reference = FilterpyFusion(dt, config)
+    for measurements in stream:
+        reference.step(measurements)
+    return np.array(reference.seconds), reference.states()
 
 
 def bench_cloud(scenario: Scenario, steps: int) -> Benchmarks:
@@ -133,7 +161,11 @@ def bench_cloud(scenario: Scenario, steps: int) -> Benchmarks:
     if steps < 2 * WARMUP_STEPS:
         raise ValueError(f"steps must be >= {2 * WARMUP_STEPS}, got {steps}")
     config = fusion_config(scenario)  # as in the closed loop
-    fusion_s, plan_s, stream = fly(scenario, steps, config)
+    try:
+        reference = FilterpyFusion(scenario.dt, config)
+    except ImportError:
+        reference = None  # no reference without filterpy
+    fusion_s, plan_s, stream = fly(scenario, steps, config, reference=reference)
     kept = slice(WARMUP_STEPS, None)
     per_step = float(np.mean([len(m) for m in stream[kept]]))
     what = (
@@ -141,14 +173,10 @@ def bench_cloud(scenario: Scenario, steps: int) -> Benchmarks:
         f"({per_step:.1f} measurements)"
     )
     fusion = replace(latency(what, fusion_s[kept], "ms", 1), measurements_per_step=per_step)
-    try:
-        reference = filterpy_fusion(stream, scenario.dt, config)[0][kept]
-    except ImportError:
-        pass  # no reference without filterpy
-    else:
-        fusion = with_reference(
-            fusion, latency("filterpy KalmanFilter, same stream, fixed R", reference, "ms", 1)
-        )
+    if reference is not None:
+        seconds = np.array(reference.seconds)[kept]
+        what = "filterpy KalmanFilter, same stream and loop, fixed R"
+        fusion = with_reference(fusion, latency(what, seconds, "ms", 1))
     what = f"DroneFL planner, one {scenario.name} step (forecast + plan)"
     planner = latency(what, plan_s[kept], "ms", 1)
     return Benchmarks(fusion=fusion, planner=planner)

@@ -2,9 +2,10 @@
 
 Each step the drones send their predicted positions of the targets they see
 (:class:`PositionMeasurement`); :meth:`Fuser.update` propagates every track to the time those
-predictions refer to, fuses them (sequentially, in drone-id order, each with its pair's adapted
-``R``, gated), and returns the fused :class:`Track` of every target. A target that nobody
-reports is only predicted. :meth:`Fuser.forecast` hands the planner a :class:`TrackForecast`:
+predictions refer to, fuses them (each with its pair's adapted ``R``, gated; the step's
+measurements go to the fusion method as one :class:`~dronefl.tracking.methods.MeasurementBatch`)
+and returns the fused :class:`Track` of every target. A target that nobody reports is only
+predicted. :meth:`Fuser.forecast` hands the planner a :class:`TrackForecast`:
 the fused positions and, for any set of observing drones, the trace of the covariance after the
 next predict + update.
 """
@@ -19,7 +20,7 @@ from typing import Literal
 import numpy as np
 
 from dronefl.tracking.ekf import CHI2_2DOF_99, CHI2_2DOF_999, inv2_stack
-from dronefl.tracking.methods import FUSION_METHODS
+from dronefl.tracking.methods import FUSION_METHODS, MeasurementBatch
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
@@ -226,9 +227,10 @@ class Fuser:
     .. math::
         x_j^- = f(x_j, \Delta t),\qquad P_j^- = F P_j F^T + Q
 
-    then hands each target's measurements (in drone-id order) to the method, which fuses them
-    with the pairs' adapted ``R`` and gating (``paper``: sequentially; ``robust``: jointly
-    against the common prior, Huber-weighted).
+    then hands the measurements of every tracked target (in drone-id order) to the method in
+    one :class:`~dronefl.tracking.methods.MeasurementBatch`, which fuses them with the pairs'
+    adapted ``R`` and gating (``paper``: sequentially; ``robust``: jointly against the common
+    prior, Huber-weighted, all targets at once).
 
     ``target_ids`` / ``drone_ids``: the scenario's ids; ``config``: :class:`FusionConfig`;
     ``initial_positions``: optional ``{target_id: (2,)}`` m to start tracks at ``t0`` (with
@@ -300,21 +302,14 @@ class Fuser:
     @property
     def tracks(self) -> dict[int, Track]:
         """Current track of every target that has one, by target id."""
+        means, covariances = self._mean.copy(), self._cov.copy()  # the tracks' own arrays
         out = {}
-        for k, j in enumerate(self.target_ids):
-            if not self._alive[k]:
-                continue
+        for k in self._alive.nonzero()[0].tolist():
+            j = self.target_ids[k]
             accepted, rejected = self._last.get(j, (0, 0))
-            mean = self._mean[k].copy()
-            out[j] = Track(
-                j,
-                self.t,
-                mean,
-                self._cov[k].copy(),
-                self.model.velocity(mean),
-                accepted,
-                rejected,
-            )
+            mean = means[k]
+            velocity = self.model.velocity(mean)
+            out[j] = Track(j, self.t, mean, covariances[k], velocity, accepted, rejected)
         return out
 
     def update(self, t: float, measurements: Sequence[PositionMeasurement]) -> dict[int, Track]:
@@ -326,34 +321,30 @@ class Fuser:
         """
         if not t >= self.t:
             raise ValueError(f"update time {t} s is before the last update at {self.t} s")
-        by_target = self._group(measurements)
+        batch = self._group(measurements)
         self._predict(t - self.t)
         self.t = float(t)
         self._last = {}
-        for j, group in by_target.items():
-            drones = np.array([d for d, _ in group])
-            positions = np.array([p for _, p in group])
-            if self._alive[j]:
-                self._fuse(j, drones, positions)
-            else:
-                self._birth(j, drones, positions)
+        tracked = self._alive[batch.targets]  # (G,)
+        for g in (~tracked).nonzero()[0]:
+            rows = batch.rows(g)
+            self._birth(int(batch.targets[g]), batch.drone[rows], batch.position[rows])
+        if tracked.any():
+            self._fuse(batch if tracked.all() else batch.select(tracked))
         if self.record:
-            for j in np.flatnonzero(self._alive):
-                if j not in by_target:
+            measured = set(batch.targets.tolist())
+            for j in self._alive.nonzero()[0].tolist():
+                if j not in measured:
                     row = (self._mean[j].copy(), self._cov[j].copy(), 0)
                     self._history[j].append(self._pending[j] + row)
         return self.tracks
 
     def _predict(self, dt: float) -> None:
         """Propagate every live track ``dt`` s; keeps each prior for the history."""
-        self._pending = {}
-        alive = np.flatnonzero(self._alive)
+        alive = self._alive.nonzero()[0]
         if dt == 0 or alive.size == 0:
-            for j in alive:
-                f = np.eye(self.model.ndim)
-                self._pending[j] = (self.t, self._mean[j].copy(), self._cov[j].copy(), f)
-            return
-        if isinstance(self.model, ConstantVelocity):  # linear: one F and Q for every track
+            jacobians = [np.eye(self.model.ndim)] * alive.size
+        elif isinstance(self.model, ConstantVelocity):  # linear: one F and Q for every track
             f = self.model.transition_matrix(dt)
             q = self.model.process_noise(self._mean[0], dt)
             self._mean[alive] = self._mean[alive] @ f.T
@@ -367,40 +358,38 @@ class Fuser:
                 jacobians.append(f)
                 self._cov[j] = f @ self._cov[j] @ f.T + self.model.process_noise(x, dt)
                 self._mean[j] = self.model.transition(x, dt)
-        t = self.t + dt
-        for j, f in zip(alive, jacobians, strict=True):
-            self._pending[j] = (t, self._mean[j].copy(), self._cov[j].copy(), f)
+        if self.record:  # this update's (t, prior mean, prior cov, F) per live track
+            t, means, covariances = self.t + dt, self._mean[alive], self._cov[alive]  # copies
+            self._pending = {
+                j: (t, means[row], covariances[row], f)
+                for row, (j, f) in enumerate(zip(alive.tolist(), jacobians, strict=True))
+            }
 
-    def _group(
-        self, measurements: Sequence[PositionMeasurement]
-    ) -> dict[int, list[tuple[int, np.ndarray]]]:
-        """``{target index: [(drone index, position (2,)), ...]}`` in drone-id order."""
-        seen: set[tuple[int, int]] = set()
-        by_target: dict[int, list[tuple[int, np.ndarray]]] = {}
-        for m in measurements:
-            pair = (m.drone_id, m.target_id)
-            i, j = self._drone_index.get(m.drone_id), self._target_index.get(m.target_id)
-            if i is None or j is None:
-                raise ValueError(
-                    f"measurement from drone {m.drone_id} of target {m.target_id}: unknown id "
-                    f"(drones {self.drone_ids}, targets {self.target_ids})"
-                )
-            if pair in seen:
-                raise ValueError(
-                    f"two measurements from drone {m.drone_id} of target "
-                    f"{m.target_id} in one update"
-                )
-            seen.add(pair)
-            position = np.asarray(m.position, dtype=float)
-            if position.shape != (2,):
-                raise ValueError(f"measurement position must have shape (2,), got {position.shape}")
-            if not np.isfinite(position).all():
-                self.dropped += 1
-                continue
-            by_target.setdefault(j, []).append((i, position))
-        for group in by_target.values():
-            group.sort(key=lambda m: m[0])  # a fixed order makes runs reproducible
-        return by_target
+    def _group(self, measurements: Sequence[PositionMeasurement]) -> MeasurementBatch:
+        """The finite ``measurements`` as a batch (rows in target, then drone order: a fixed
+        order makes runs reproducible); counts the others in :attr:`dropped`."""
+        pairs = [
+            (self._drone_index.get(m.drone_id), self._target_index.get(m.target_id))
+            for m in measurements
+        ]
+        if any(None in pair for pair in pairs):
+            m = next(m for m, pair in zip(measurements, pairs, strict=True) if None in pair)
+            raise ValueError(
+                f"measurement from drone {m.drone_id} of target {m.target_id}: unknown id "
+                f"(drones {self.drone_ids}, targets {self.target_ids})"
+            )
+        if len(set(pairs)) < len(pairs):
+            m = next(m for k, m in enumerate(measurements) if pairs[k] in pairs[:k])
+            raise ValueError(
+                f"two measurements from drone {m.drone_id} of target {m.target_id} in one update"
+            )
+        index = np.array(pairs, dtype=int).reshape(-1, 2)  # (drone, target) per row, (K, 2)
+        positions = _positions(measurements)
+        finite = np.isfinite(positions).all(axis=1)
+        if not finite.all():
+            self.dropped += len(finite) - int(finite.sum())
+            index, positions = index[finite], positions[finite]
+        return MeasurementBatch.of(index[:, 1], index[:, 0], positions)
 
     def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
         """Start (or restart) target ``j``'s track at the mean of ``positions``; its
@@ -410,23 +399,31 @@ class Fuser:
         self._start(j, positions.mean(axis=0), np.linalg.inv(info), len(drones))
         self._last[self.target_ids[j]] = (len(drones), 0)
 
-    def _fuse(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
-        result = self.method.update(j, drones, self._mean[j], self._cov[j], positions)
+    def _fuse(self, batch: MeasurementBatch) -> None:
+        """Fuse ``batch`` (of tracked targets only) into the tracks; count the gated-out
+        measurements, reset the tracks lost for ``reset_after`` updates, record the rest."""
+        j = batch.targets
+        result = self.method.update(batch, self._mean[j], self._cov[j])
         self._mean[j], self._cov[j] = result.mean, result.covariance
-        accepted = int(result.accepted.sum())
-        rejected = len(drones) - accepted
-        self.measurements += len(drones)
-        self.rejections += rejected
-        target_id = self.target_ids[j]
-        self._last[target_id] = (accepted, rejected)
-        self._misses[j] = self._misses[j] + 1 if accepted == 0 else 0
-        if self.config.reset_after is not None and self._misses[j] >= self.config.reset_after:
-            self.resets += 1
-            self._birth(j, drones, positions)
-            self._last[target_id] = (0, rejected)
-        elif self.record:
-            row = (self._mean[j].copy(), self._cov[j].copy(), accepted)
-            self._history[j].append(self._pending[j] + row)
+        accepted = np.add.reduceat(result.accepted.astype(int), batch.start)  # (G,)
+        rejected = batch.count - accepted
+        self.measurements += len(batch.target)
+        self.rejections += int(rejected.sum())
+        self._misses[j] = np.where(accepted == 0, self._misses[j] + 1, 0)
+        reset_after = self.config.reset_after
+        for g, (k, n_accepted, n_rejected) in enumerate(
+            zip(j.tolist(), accepted.tolist(), rejected.tolist(), strict=True)
+        ):
+            target_id = self.target_ids[k]
+            self._last[target_id] = (n_accepted, n_rejected)
+            if reset_after is not None and self._misses[k] >= reset_after:
+                self.resets += 1
+                rows = batch.rows(g)
+                self._birth(k, batch.drone[rows], batch.position[rows])
+                self._last[target_id] = (0, n_rejected)
+            elif self.record:  # result's rows are fresh arrays, kept as they are
+                row = (result.mean[g], result.covariance[g], n_accepted)
+                self._history[k].append(self._pending[k] + row)
 
     def history(self, target_id: int) -> TrackHistory | None:
         """The recorded forward pass of ``target_id``'s track (``None`` before its birth)."""
@@ -474,3 +471,17 @@ class Fuser:
             predicted[row] = f @ self._cov[k] @ f.T + self.model.process_noise(self._mean[k], dt)
         noise = self.method.noise()[:, index]
         return TrackForecast(ids, self.drone_ids, positions, predicted, noise)
+
+
+def _positions(measurements: Sequence[PositionMeasurement]) -> np.ndarray:
+    """The measurements' positions ``(K, 2)`` m; ``ValueError`` if one is not ``(2,)``."""
+    if not measurements:
+        return np.empty((0, 2))
+    try:
+        positions = np.array([m.position for m in measurements], dtype=float)
+    except ValueError:  # ragged
+        positions = None
+    if positions is None or positions.shape != (len(measurements), 2):
+        shape = next(s for m in measurements if (s := np.shape(m.position)) != (2,))
+        raise ValueError(f"measurement position must have shape (2,), got {shape}")
+    return positions

@@ -30,10 +30,51 @@ if TYPE_CHECKING:
 
 
 @dataclass(frozen=True)
-class TargetUpdate:
-    """A target's posterior ``mean`` ``(n,)`` / ``covariance`` ``(n, n)`` after one step's
-    measurements, and which of them were fused (``accepted`` ``(m,)``; the others were gated
-    out)."""
+class MeasurementBatch:
+    """One update's measurements of tracked targets, the rows sorted by target, then drone.
+
+    ``target`` / ``drone`` ``(K,)``: indices into the Fuser's id tuples (each pair at most
+    once); ``position`` ``(K, 2)`` m. ``targets`` ``(G,)``: the distinct targets, ascending;
+    ``start`` / ``count`` ``(G,)``: the first row and the number of rows of each; ``group``
+    ``(K,)``: each row's place in ``targets``.
+    """
+
+    target: np.ndarray
+    drone: np.ndarray
+    position: np.ndarray
+    targets: np.ndarray
+    start: np.ndarray
+    count: np.ndarray
+    group: np.ndarray
+
+    @classmethod
+    def of(cls, target: np.ndarray, drone: np.ndarray, position: np.ndarray) -> MeasurementBatch:
+        """The rows ``target`` / ``drone`` ``(K,)``, ``position`` ``(K, 2)`` m, sorted and
+        grouped."""
+        order = np.lexsort((drone, target))
+        target, drone, position = target[order], drone[order], position[order]
+        per_target = np.bincount(target)  # rows of every target index
+        targets = per_target.nonzero()[0]
+        count = per_target[targets]
+        group = (per_target > 0).cumsum()[target] - 1
+        return cls(target, drone, position, targets, count.cumsum() - count, count, group)
+
+    def rows(self, group: int) -> slice:
+        """The rows of ``targets[group]``."""
+        start = int(self.start[group])
+        return slice(start, start + int(self.count[group]))
+
+    def select(self, keep: np.ndarray) -> MeasurementBatch:
+        """The batch of the targets where ``keep`` ``(G,)`` is set."""
+        rows = keep[self.group]
+        return MeasurementBatch.of(self.target[rows], self.drone[rows], self.position[rows])
+
+
+@dataclass(frozen=True)
+class BatchUpdate:
+    """The posteriors ``mean`` ``(G, n)`` / ``covariance`` ``(G, n, n)`` of a batch's targets
+    after their measurements, and which measurements were fused (``accepted`` ``(K,)``; the
+    others were gated out)."""
 
     mean: np.ndarray
     covariance: np.ndarray
@@ -58,16 +99,11 @@ class FusionMethod(ABC):
 
     @abstractmethod
     def update(
-        self,
-        target: int,
-        drones: np.ndarray,
-        mean: np.ndarray,
-        covariance: np.ndarray,
-        positions: np.ndarray,
-    ) -> TargetUpdate:
-        """Fuse the positions ``(m, 2)`` m that drones ``drones`` ``(m,)`` (indices, ascending)
-        report of target ``target`` into its prior ``mean`` ``(n,)`` / ``covariance``
-        ``(n, n)``, adapting those pairs' ``R``."""
+        self, batch: MeasurementBatch, mean: np.ndarray, covariance: np.ndarray
+    ) -> BatchUpdate:
+        """Fuse ``batch`` (one update's measurements) into the priors ``mean`` ``(G, n)`` /
+        ``covariance`` ``(G, n, n)`` of ``batch.targets``, adapting the measured pairs' ``R``
+        (the inputs are left unchanged)."""
 
 
 class SequentialAdaptive(FusionMethod):
@@ -98,17 +134,23 @@ class SequentialAdaptive(FusionMethod):
     def noise(self) -> np.ndarray:
         return np.array([[n.covariance for n in row] for row in self._noise])
 
-    def update(self, target, drones, mean, covariance, positions) -> TargetUpdate:
-        accepted = np.zeros(len(drones), dtype=bool)
-        for k, i in enumerate(drones):
-            noise = self._noise[i][target]
-            mean, covariance, diagnostics = position_update(
-                mean, covariance, positions[k], noise.covariance, self.config.gate
-            )
-            accepted[k] = diagnostics.accepted
-            if diagnostics.accepted and self.config.adaptive:
-                noise.observe(diagnostics)
-        return TargetUpdate(mean, covariance, accepted)
+    def update(self, batch, mean, covariance) -> BatchUpdate:
+        mean, covariance = mean.copy(), covariance.copy()
+        accepted = np.zeros(len(batch.target), dtype=bool)
+        drones = batch.drone.tolist()
+        for g, j in enumerate(batch.targets.tolist()):
+            x, p = mean[g], covariance[g]
+            rows = batch.rows(g)
+            for k in range(rows.start, rows.stop):
+                noise = self._noise[drones[k]][j]
+                x, p, diagnostics = position_update(
+                    x, p, batch.position[k], noise.covariance, self.config.gate
+                )
+                accepted[k] = diagnostics.accepted
+                if diagnostics.accepted and self.config.adaptive:
+                    noise.observe(diagnostics)
+            mean[g], covariance[g] = x, p
+        return BatchUpdate(mean, covariance, accepted)
 
 
 def huber_weight(nis: np.ndarray, threshold: float) -> np.ndarray:
@@ -151,32 +193,32 @@ class RobustAdaptive(FusionMethod):
     *Correlated errors.* A drone's prediction errors persist over many steps (lag-1
     autocorrelation ``phi`` ~0.85 at 5 Hz), so ``n`` of its measurements carry the information
     of only ``n (1 - phi) / (1 + phi)`` independent ones. Every update therefore uses
-    ``	ilde R_i = R_i (1 + phi) / (1 - phi)`` (``error_autocorrelation``), which keeps ``P``
+    ``\tilde R_i = R_i (1 + phi) / (1 - phi)`` (``error_autocorrelation``), which keeps ``P``
     honest instead of shrinking it as if the errors were white.
 
     *Outliers, not lagging tracks.* With two or more drones, a measurement is judged against
     the others, not against the prior: its leave-one-out residual
-    ``r_i = z_i - ar z_{-i}`` (``ar z_{-i}`` the information-weighted mean of the other
-    drones' positions, covariance ``ar R_{-i}``) gives ``d_i^2 = r_i^T (	ilde R_i +
-    ar R_{-i})^{-1} r_i``. Beyond ``k^2 = huber_threshold`` the measurement's weight falls as
+    ``r_i = z_i - \bar z_{-i}`` (``\bar z_{-i}`` the information-weighted mean of the other
+    drones' positions, covariance ``\bar R_{-i}``) gives ``d_i^2 = r_i^T (\tilde R_i +
+    \bar R_{-i})^{-1} r_i``. Beyond ``k^2 = huber_threshold`` the measurement's weight falls as
     ``w_i = k / d_i`` (Huber); beyond the gate it is rejected (of two drones that disagree, the
     one farther from the prior). A lone measurement is judged by its innovation
-    ``y_i^T (A + 	ilde R_i)^{-1} y_i`` as in the paper. If the weighted consensus itself lies
+    ``y_i^T (A + \tilde R_i)^{-1} y_i`` as in the paper. If the weighted consensus itself lies
     outside the gate of the prior, the track is lagging: ``P^-`` is inflated by
     ``\lambda = d^2 / g`` (a fading factor) so the update follows the drones instead of the
     gate rejecting all of them.
 
-    *Update.* The joint update with noises ``	ilde R_i / w_i`` is one update with
+    *Update.* The joint update with noises ``\tilde R_i / w_i`` is one update with
 
     .. math::
-        \Lambda = \sum_i w_i 	ilde R_i^{-1},\quad ar R = \Lambda^{-1},\quad
-        ar y = ar R \sum_i w_i 	ilde R_i^{-1} y_i,\quad
-        K = P^- H^T (A + ar R)^{-1},\quad x^+ = x^- + K ar y
+        \Lambda = \sum_i w_i \tilde R_i^{-1},\quad \bar R = \Lambda^{-1},\quad
+        \bar y = \bar R \sum_i w_i \tilde R_i^{-1} y_i,\quad
+        K = P^- H^T (A + \bar R)^{-1},\quad x^+ = x^- + K \bar y
 
     and the Joseph-form covariance.
 
     *Adaptive R.* With ``noise_estimate = "consensus"`` and two or more drones, ``R_i`` is the
-    EMA of ``w_i r_i r_i^T / c - ar R_{-i}`` (the leave-one-out residual measures the drone's
+    EMA of ``w_i r_i r_i^T / c - \bar R_{-i}`` (the leave-one-out residual measures the drone's
     whole error, slow parts included, which the innovation against a prior that has followed
     the same slow error does not); otherwise, of ``w_i y_i y_i^T / c - A`` (the paper's
     innovation form). ``c`` (:func:`huber_second_moment`) makes the sample unbiased for
@@ -186,9 +228,11 @@ class RobustAdaptive(FusionMethod):
     def __init__(self, config: FusionConfig, n_drones: int, n_targets: int) -> None:
         super().__init__(config, n_drones, n_targets)
         r0 = config.initial_noise_std**2
-        # R_ij as (xx, xy, yy) floats: the 2 x 2 algebra below runs on Python floats, which
-        # costs a fraction of numpy's per-call overhead at this size.
-        self._r = [[(r0, 0.0, r0) for _ in range(n_targets)] for _ in range(n_drones)]
+        # R_ij as its components (xx, xy, yy), (3, n_drones, n_targets): the 2 x 2 algebra
+        # below runs on component arrays of all of a step's measurements at once, a few dozen
+        # numpy calls per step instead of many small matrices per measurement.
+        self._r = np.zeros((3, n_drones, n_targets))
+        self._r[0] = self._r[2] = r0
         self._floor = config.noise_floor_std**2
         self._c = huber_second_moment(config.huber_threshold, config.gate)
         self._c_consensus = huber_second_moment(config.huber_threshold, config.consensus_gate)
@@ -196,171 +240,219 @@ class RobustAdaptive(FusionMethod):
         self._inflation = (1.0 + phi) / (1.0 - phi)
 
     def noise(self) -> np.ndarray:
-        out = np.empty((self.n_drones, self.n_targets, 2, 2))
-        for i, row in enumerate(self._r):
-            for j, (xx, xy, yy) in enumerate(row):
-                out[i, j] = ((xx, xy), (xy, yy))
-        return out * self._inflation
+        return _matrix(self._r * self._inflation)
 
-    def update(self, target, drones, mean, covariance, positions) -> TargetUpdate:
+    def update(self, batch, mean, covariance) -> BatchUpdate:
         config = self.config
         gate = math.inf if config.gate is None else config.gate
-        k2 = config.huber_threshold
-        inflation = self._inflation
-        m = len(drones)
-        ax, axy, ay = covariance[0, 0], covariance[0, 1], covariance[1, 1]  # A = H P^- H^T
-        px, py = mean[0], mean[1]
-        z = positions.tolist()
-        r = [tuple(v * inflation for v in self._r[i][target]) for i in drones.tolist()]
-        info = [_inv_sym(*ri) for ri in r]  # R_i^-1
-        y = [(zi[0] - px, zi[1] - py) for zi in z]
-        prior_nis = [
-            _quad(yi, _inv_sym(ax + ri[0], axy + ri[1], ay + ri[2]))
-            for yi, ri in zip(y, r, strict=True)
-        ]
-        residual = rest = None
-        if m >= 2 and config.consensus_gate is not None:
-            accepted, nis, residual, rest = _consensus_gate(
-                z, r, info, prior_nis, config.consensus_gate, gate
-            )
+        group = batch.group
+        z = batch.position.T  # (2, K)
+        r = self._r[:, batch.drone, batch.target] * self._inflation  # R~_i, (3, K)
+        info = _inv_sym(r)  # R~_i^-1
+        y = z - mean[group, :2].T  # innovations against the common prior, (2, K)
+        a = covariance[:, _XX_XY_YY[0], _XX_XY_YY[1]].T  # A = H P^- H^T, (3, G)
+        prior_nis = _quad(y, _inv_sym(a[:, group] + r))
+        if config.consensus_gate is None:
+            accepted, nis = prior_nis <= gate, prior_nis
+            residual, rest = np.zeros(y.shape), np.zeros(r.shape)
+            consensus = np.zeros(len(batch.targets), dtype=bool)
         else:
-            nis = prior_nis
-            accepted = [d <= gate for d in nis]
-        weight = [
-            (1.0 if d <= k2 else math.sqrt(k2 / d)) if ok else 0.0
-            for d, ok in zip(nis, accepted, strict=True)
-        ]
-        if any(accepted):
-            lx = lxy = ly = bx = by = 0.0  # Lambda = sum w R^-1, b = sum w R^-1 y
-            for w, (ix, ixy, iy), (yx, yy) in zip(weight, info, y, strict=True):
-                lx, lxy, ly = lx + w * ix, lxy + w * ixy, ly + w * iy
-                bx, by = bx + w * (ix * yx + ixy * yy), by + w * (ixy * yx + iy * yy)
-            rbx, rbxy, rby = _inv_sym(lx, lxy, ly)  # R_bar
-            ybar = (rbx * bx + rbxy * by, rbxy * bx + rby * by)
-            s_inv = _inv_sym(ax + rbx, axy + rbxy, ay + rby)
-            fused_nis = _quad(ybar, s_inv)
-            if config.fading and fused_nis > gate:  # a lagging track: trust the drones
-                covariance = covariance * min(fused_nis / gate, MAX_FADING)
-                ax, axy, ay = covariance[0, 0], covariance[0, 1], covariance[1, 1]
-                s_inv = _inv_sym(ax + rbx, axy + rbxy, ay + rby)
-            k = covariance[:, :2] @ np.array(((s_inv[0], s_inv[1]), (s_inv[1], s_inv[2])))
-            i_kh = np.eye(len(mean))
-            i_kh[:, :2] -= k
-            r_bar = np.array(((rbx, rbxy), (rbxy, rby)))
-            mean = mean + k @ ybar
-            covariance = i_kh @ covariance @ i_kh.T + k @ r_bar @ k.T
-        if config.adaptive:
-            self._adapt(target, drones, y, (ax, axy, ay), residual, rest, weight, accepted)
-        return TargetUpdate(mean, covariance, np.array(accepted, dtype=bool))
-
-    def _adapt(self, target, drones, y, a, residual, rest, weight, accepted) -> None:
-        beta = self.config.adaptation_rate
-        used = [row for row, ok in enumerate(accepted) if ok]
-        estimate = self.config.noise_estimate
-        if residual is None or len(used) < 2:
-            estimate = "innovation"
-        c = self._c if estimate == "innovation" else self._c_consensus
-        scale = 1.0 / (c * self._inflation)  # R_i is kept without the inflation
-        zero = (0.0, 0.0, 0.0)
-        for row in used:
-            i = int(drones[row])
-            w = weight[row] * scale
-            yx, yy = y[row]
-            if estimate == "innovation":  # y y^T - A
-                base, u, v = a, (yx, yy), (yx, yy)
-            elif estimate == "consensus":  # r r^T - R_-i
-                base, u, v = rest[row], residual[row], residual[row]
-            else:  # the prior as the third corner: sym(y r^T)
-                base, u, v = zero, (yx, yy), residual[row]
-            sample = (u[0] * v[0], 0.5 * (u[0] * v[1] + u[1] * v[0]), u[1] * v[1])
-            sample = tuple(w * s - b / self._inflation for s, b in zip(sample, base, strict=True))
-            old = self._r[i][target]
-            self._r[i][target] = _floor_sym(
-                *((1.0 - beta) * o + beta * s for o, s in zip(old, sample, strict=True)),
-                self._floor,
+            accepted, nis, residual, rest, consensus = _consensus_gate(
+                batch, z, r, info, prior_nis, config.consensus_gate, gate
             )
+        weight = np.where(accepted, huber_weight(nis, config.huber_threshold), 0.0)
+        used = np.add.reduceat(accepted, batch.start, dtype=int)  # fused per target, (G,)
+        mean, covariance = mean.copy(), covariance.copy()  # a target with none keeps its prior
+        live = used.nonzero()[0]  # (G',)
+        if live.size:
+            lam = np.add.reduceat(weight * info, batch.start, axis=1)[:, live]
+            b = np.add.reduceat(weight * _apply(info, y), batch.start, axis=1)[:, live]
+            mean[live], covariance[live], a[:, live] = _joint_update(
+                mean[live], covariance[live], a[:, live], lam, b, config.fading, gate
+            )
+        if config.adaptive:
+            self._adapt(batch, y, a, residual, rest, weight, accepted, consensus)
+        return BatchUpdate(mean, covariance, accepted)
+
+    def _adapt(self, batch, y, a, residual, rest, weight, accepted, consensus) -> None:
+        """EMA of every fused pair's ``R`` toward its weighted sample (class doc): from the
+        leave-one-out residuals ``residual`` ``(2, K)`` / ``rest`` ``(3, K)`` for the targets
+        where ``consensus`` ``(G,)`` is set, else from the innovations ``y`` ``(2, K)`` and
+        ``A`` ``(3, G)``."""
+        rows = accepted.nonzero()[0]
+        if not rows.size:
+            return
+        beta, inflation = self.config.adaptation_rate, self._inflation
+        estimate = self.config.noise_estimate
+        groups = batch.group[rows]
+        innovation = ~consensus[groups] if estimate != "innovation" else np.ones(rows.size, bool)
+        c = np.where(innovation, self._c, self._c_consensus)
+        w = weight[rows] * (1.0 / (c * inflation))  # R_i is kept without the inflation
+        u = v = y[:, rows]  # innovation: y y^T - A
+        base = a[:, groups]
+        if estimate == "consensus":  # r r^T - R_-i
+            u = v = np.where(innovation, u, residual[:, rows])
+            base = np.where(innovation, base, rest[:, rows])
+        elif estimate == "grubbs":  # the prior as the third corner: sym(y r^T)
+            v = np.where(innovation, v, residual[:, rows])
+            base = np.where(innovation, base, 0.0)
+        sample = w * _outer(u, v) - base / inflation
+        drone, target = batch.drone[rows], batch.target[rows]
+        blended = (1.0 - beta) * self._r[:, drone, target] + beta * sample
+        self._r[:, drone, target] = _floor_sym(blended, self._floor)
 
 
-def _inv_sym(xx: float, xy: float, yy: float) -> tuple[float, float, float]:
-    """Inverse of the symmetric ``[[xx, xy], [xy, yy]]`` as ``(xx, xy, yy)``."""
-    det = xx * yy - xy * xy
-    return yy / det, -xy / det, xx / det
+def _joint_update(mean, covariance, a, lam, b, fading, gate):
+    r"""One update of every target's prior ``mean`` ``(G, n)`` / ``covariance`` ``(G, n, n)``
+    (position block ``A`` ``(3, G)``) with its weighted measurements in information form,
+    ``Lambda = sum_i w_i R~_i^-1`` ``(3, G)`` and ``b = sum_i w_i R~_i^-1 y_i`` ``(2, G)``:
+    ``R_bar = Lambda^-1``, ``y_bar = R_bar b``, a lagging track's prior inflated (with
+    ``fading``, where ``y_bar`` lies beyond ``gate``), ``K = P^- H^T (A + R_bar)^-1`` and the
+    Joseph-form covariance (as :func:`~dronefl.tracking.ekf.position_update`). Returns the
+    posterior mean and covariance and the ``A`` used."""
+    r_bar = _inv_sym(lam)
+    y_bar = _apply(r_bar, b)  # (2, G)
+    s_inv = _inv_sym(a + r_bar)
+    if fading:
+        fused_nis = _quad(y_bar, s_inv)
+        lagging = fused_nis > gate
+        if lagging.any():  # a lagging track: trust the drones
+            factor = np.where(lagging, np.minimum(fused_nis / gate, MAX_FADING), 1.0)
+            covariance, a = covariance * factor[:, None, None], a * factor
+            s_inv = _inv_sym(a + r_bar)
+    k = covariance[:, :, :2] @ _matrix(s_inv)  # K = P^- H^T S^-1, (G, n, 2)
+    n = mean.shape[1]
+    kh = np.zeros((len(mean), n, n))  # K H
+    kh[:, :, :2] = k
+    i_kh = np.eye(n) - kh
+    mean = mean + (k @ y_bar.T[:, :, None])[:, :, 0]
+    return mean, _sandwich(i_kh, covariance) + _sandwich(k, _matrix(r_bar)), a
 
 
-def _quad(v: tuple[float, float], m: tuple[float, float, float]) -> float:
-    """``v^T M v`` for a symmetric ``M = (xx, xy, yy)``."""
-    return m[0] * v[0] * v[0] + 2.0 * m[1] * v[0] * v[1] + m[2] * v[1] * v[1]
+#: Row and column indices of the components ``(xx, xy, yy)`` of a symmetric 2 x 2 (so
+#: ``u[rows] * v[cols]`` are those of ``u v^T``).
+_XX_XY_YY = (np.array([0, 0, 1]), np.array([0, 1, 1]))
+
+#: Signs of the cofactors of ``(yy, xy, xx)``: the adjugate of a symmetric 2 x 2.
+_COFACTOR_SIGN = np.array([[1.0], [-1.0], [1.0]])
 
 
-def _floor_sym(xx: float, xy: float, yy: float, floor: float) -> tuple[float, float, float]:
-    """:func:`~dronefl.tracking.adaptive.floor_eigenvalues` of ``[[xx, xy], [xy, yy]]``, in
-    closed form (the eigenvalues of a symmetric 2 x 2 are ``mid -+ sqrt(half^2 + xy^2)``)."""
+def _matrix(m: np.ndarray) -> np.ndarray:
+    """The symmetric matrices of components ``m = (xx, xy, yy)`` ``(3, ...)``,
+    ``(..., 2, 2)``."""
+    out = np.empty((*m.shape[1:], 2, 2))
+    out[..., 0, 0], out[..., 1, 1] = m[0], m[2]
+    out[..., 0, 1] = out[..., 1, 0] = m[1]
+    return out
+
+
+def _sandwich(left: np.ndarray, middle: np.ndarray) -> np.ndarray:
+    """``L M L^T`` for stacks ``L`` ``(G, n, m)``, ``M`` ``(G, m, m)``."""
+    return left @ middle @ left.transpose(0, 2, 1)
+
+
+def _inv_sym(m: np.ndarray) -> np.ndarray:
+    """Inverses of the symmetric matrices of components ``m = (xx, xy, yy)`` ``(3, K)``, as
+    components (closed form: ``(yy, -xy, xx) / det``)."""
+    det = m[0] * m[2] - m[1] * m[1]
+    return m[::-1] * (_COFACTOR_SIGN / det)
+
+
+def _apply(m: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``M v`` for symmetric ``M`` of components ``(3, K)`` and vectors ``v`` ``(2, K)``:
+    ``(xx v_x + xy v_y, xy v_x + yy v_y)``, ``(2, K)``."""
+    return m[:2] * v[0] + m[1:] * v[1]
+
+
+def _quad(v: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """``v^T M v`` ``(K,)`` for vectors ``v`` ``(2, K)`` and symmetric ``M`` of components
+    ``(3, K)``."""
+    mv = _apply(m, v)
+    return v[0] * mv[0] + v[1] * mv[1]
+
+
+def _outer(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The symmetric part of ``u v^T`` for vectors ``(2, K)``, as components ``(3, K)``."""
+    out = u[_XX_XY_YY[0]] * v[_XX_XY_YY[1]]  # (u_x v_x, u_x v_y, u_y v_y)
+    if u is not v:  # u_x v_y and u_y v_x differ
+        out[1] = 0.5 * (out[1] + u[1] * v[0])
+    return out
+
+
+def _floor_sym(m: np.ndarray, floor: float) -> np.ndarray:
+    """:func:`~dronefl.tracking.adaptive.floor_eigenvalues` of every symmetric matrix of
+    components ``m = (xx, xy, yy)`` ``(3, K)``, in closed form (the eigenvalues of a symmetric
+    2 x 2 are ``mid -+ sqrt(half^2 + xy^2)``)."""
+    xx, xy, yy = m
     mid, half = 0.5 * (xx + yy), 0.5 * (xx - yy)
-    radius = math.hypot(half, xy)
-    low, high = mid - radius, mid + radius
-    if low >= floor:
-        return xx, xy, yy
-    if radius == 0.0:
-        return floor, 0.0, floor
-    # eigenvector of the larger eigenvalue: (cos t, sin t) with tan 2t = 2 xy / (xx - yy)
-    c2, s2 = half / radius, xy / radius  # cos 2t, sin 2t
-    high, low = max(high, floor), floor
-    mid, half = 0.5 * (high + low), 0.5 * (high - low)
-    return mid + half * c2, half * s2, mid - half * c2
+    radius = np.hypot(half, xy)
+    kept = mid - radius >= floor
+    if kept.all():
+        return m
+    # eigenvector of the larger eigenvalue: (cos t, sin t) with tan 2t = 2 xy / (xx - yy);
+    # a multiple of I (radius 0) becomes floor I
+    round_ = radius == 0.0
+    safe = np.where(round_, 1.0, radius)
+    c2, s2 = np.where(round_, 1.0, half / safe), np.where(round_, 0.0, xy / safe)  # cos, sin 2t
+    high = np.maximum(mid + radius, floor)
+    mid, half = 0.5 * (high + floor), 0.5 * (high - floor)
+    return np.where(kept, m, np.array((mid + half * c2, half * s2, mid - half * c2)))
 
 
-def _consensus_gate(z, r, info, prior_nis, gate, prior_gate):
-    """Gate measurements against each other: while some leave-one-out residual's ``d^2``
-    exceeds ``gate``, reject the worst and recompute among the rest (a single wild drone must not
-    drag the others' residuals out of the gate); a last survivor is judged against the prior
-    (``prior_gate``).
-    Returns ``(accepted, d^2, residuals, residual covariances)`` per measurement (residuals and
-    their covariances from the final set; rejected ones keep their last values)."""
-    m = len(z)
-    alive = list(range(m))
-    accepted, nis = [False] * m, list(prior_nis)
-    residual, rest = [(0.0, 0.0)] * m, [(0.0, 0.0, 0.0)] * m
-    while len(alive) >= 2:
-        res, cov = _leave_one_out([z[k] for k in alive], [info[k] for k in alive])
-        d2 = []
-        for k, e, c in zip(alive, res, cov, strict=True):
-            rk = r[k]
-            residual[k], rest[k] = e, c
-            d2.append(_quad(e, _inv_sym(rk[0] + c[0], rk[1] + c[1], rk[2] + c[2])))
-        worst = max(range(len(alive)), key=d2.__getitem__)
-        if d2[worst] <= gate:
-            for k, d in zip(alive, d2, strict=True):
-                accepted[k], nis[k] = True, d
-            return accepted, nis, residual, rest
-        if len(alive) == 2:  # two that disagree: keep the one nearer the prior
-            worst = max((0, 1), key=lambda a: prior_nis[alive[a]])
-        nis[alive[worst]] = d2[worst]
-        alive.pop(worst)
-    last = alive[0]
-    accepted[last] = prior_nis[last] <= prior_gate
-    return accepted, nis, None if sum(accepted) < 2 else residual, rest
+def _consensus_gate(batch, z, r, info, prior_nis, gate, prior_gate):
+    """Gate measurements against each other: for every target with two or more measurements,
+    while some leave-one-out residual's ``d^2`` exceeds ``gate``, reject the worst and recompute
+    among the rest (a single wild drone must not drag the others' residuals out of the gate);
+    a last survivor, like a lone measurement, is judged against the prior (``prior_gate``).
+    ``z`` ``(2, K)`` m, ``r`` / ``info`` ``(3, K)`` the rows' ``R~_i`` and its inverse.
+
+    Returns ``(accepted (K,), d^2 (K,), residuals (2, K), residual covariances (3, K),
+    consensus (G,))`` (residuals and their covariances from the final set, rejected rows keep
+    their last values; ``consensus``: the target's residuals are usable, its final set has two
+    or more measurements, all accepted)."""
+    group, start = batch.group, batch.start
+    accepted = prior_nis <= prior_gate
+    nis = prior_nis.copy()
+    residual, rest = np.zeros(z.shape), np.zeros(r.shape)
+    consensus = batch.count >= 2
+    alive = consensus[group]  # the rows still judged against each other
+    accepted[alive] = False
+    while alive.any():
+        rows, e, c = _leave_one_out(batch, z, info, alive)
+        residual[:, rows], rest[:, rows] = e, c
+        d2 = np.full(len(group), -np.inf)
+        d2[rows] = _quad(e, _inv_sym(r[:, rows] + c))
+        agree = alive & (np.maximum.reduceat(d2, start) <= gate)[group]
+        accepted[agree], nis[agree] = True, d2[agree]
+        alive &= ~agree
+        if not alive.any():
+            break
+        # one rejection per target left: the worst, or of two that disagree, the one farther
+        # from the prior (the first of equals, as the drone order is fixed)
+        pair = (np.add.reduceat(alive, start, dtype=int) == 2)[group]
+        badness = np.where(alive, np.where(pair, prior_nis, d2), -np.inf)
+        worst = (alive & (badness == np.maximum.reduceat(badness, start)[group])).nonzero()[0]
+        worst = worst[np.diff(group[worst], prepend=-1) != 0]  # the first of each target
+        nis[worst], alive[worst] = d2[worst], False
+        last = alive & pair
+        accepted[last] = prior_nis[last] <= prior_gate
+        consensus[group[last]], alive[last] = False, False
+    return accepted, nis, residual, rest, consensus
 
 
-def _leave_one_out(
-    z: list, info: list[tuple[float, float, float]]
-) -> tuple[list[tuple[float, float]], list[tuple[float, float, float]]]:
-    """Each measurement's residual from the information-weighted mean of the others,
-    ``r_i = z_i - \bar z_{-i}`` (m), and that mean's covariance ``\bar R_{-i}`` (m^2),
-    from positions ``z`` ``[(x, y), ...]`` and information matrices ``R_i^-1`` (``m >= 2``)."""
-    tx = sum(v[0] for v in info)
-    txy = sum(v[1] for v in info)
-    ty = sum(v[2] for v in info)
-    wz = [
-        (v[0] * p[0] + v[1] * p[1], v[1] * p[0] + v[2] * p[1]) for v, p in zip(info, z, strict=True)
-    ]
-    sx, sy = sum(w[0] for w in wz), sum(w[1] for w in wz)
-    residuals, rests = [], []
-    for v, w, p in zip(info, wz, z, strict=True):
-        rx, rxy, ry = _inv_sym(tx - v[0], txy - v[1], ty - v[2])
-        cx, cy = sx - w[0], sy - w[1]
-        residuals.append((p[0] - (rx * cx + rxy * cy), p[1] - (rxy * cx + ry * cy)))
-        rests.append((rx, rxy, ry))
-    return residuals, rests
+def _leave_one_out(batch, z, info, alive):
+    r"""Every ``alive`` ``(K,)`` row's residual from the information-weighted mean of the other
+    alive rows of its target, ``r_i = z_i - \bar z_{-i}`` (m), and that mean's covariance
+    ``\bar R_{-i}`` (m^2), from positions ``z`` ``(2, K)`` and information matrices ``R_i^-1``
+    ``(3, K)`` (every target with an alive row has two or more). Returns ``(rows (K',),
+    residuals (2, K'), covariances (3, K'))``."""
+    rows = alive.nonzero()[0]
+    groups = batch.group[rows]
+    info_z = _apply(info, z)  # R^-1 z, (2, K)
+    total = np.add.reduceat(info * alive, batch.start, axis=1)[:, groups]
+    total_z = np.add.reduceat(info_z * alive, batch.start, axis=1)[:, groups]
+    rest = _inv_sym(total - info[:, rows])
+    return rows, z[:, rows] - _apply(rest, total_z - info_z[:, rows]), rest
 
 
 #: Largest fading factor applied to a lagging track's prior covariance in one update.

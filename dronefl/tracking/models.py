@@ -92,14 +92,10 @@ class ConstantVelocity(MotionModel):
         return self.transition_matrix(dt)
 
     def process_noise(self, x: np.ndarray, dt: float) -> np.ndarray:
-        block = _integrated_white_noise(self.acceleration_psd, dt)
+        (p, c), (_, v) = _integrated_white_noise(self.acceleration_psd, dt)
         # State order is (x, y, vx, vy): axis a has its position at a and its velocity at a + 2,
-        # so Q = block (x) I_2, written out (np.kron costs more than the rest of a predict).
-        q = np.zeros((4, 4))
-        for a in (0, 1):
-            q[a, a], q[a, a + 2] = block[0, 0], block[0, 1]
-            q[a + 2, a], q[a + 2, a + 2] = block[1, 0], block[1, 1]
-        return q
+        # so Q = [[p, c], [c, v]] (x) I_2, written out (np.kron costs more than a predict).
+        return np.array([[p, 0.0, c, 0.0], [0.0, p, 0.0, c], [c, 0.0, v, 0.0], [0.0, c, 0.0, v]])
 
     def velocity(self, x: np.ndarray) -> np.ndarray:
         return x[2:4]

@@ -80,7 +80,7 @@ def test_two_drones_with_known_noises_fused_beat_either_alone():
     config = FusionConfig(acceleration_psd=0.05, adaptive=False)
     fuser = Fuser([1], [1, 2], config, {1: np.zeros(2)})
     for i, r in enumerate(noise):
-        fuser.method._r[i][0] = (r[0, 0], r[0, 1], r[1, 1])
+        fuser.method._r[:, i, 0] = (r[0, 0], r[0, 1], r[1, 1])  # (xx, xy, yy)
     fused = np.array([
         fuser.update((k + 1) * DT, [
             PositionMeasurement(i + 1, 1, truth[k] + errors[i][k]) for i in range(2)
