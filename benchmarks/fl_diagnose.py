@@ -15,9 +15,10 @@ round:
 
 ``--pooled`` trains the same model on all drones' pooled training windows instead (the
 ``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, lr,
-batch size, weighting, rounds and the hold-out: ``--validation`` trains on the first 80 % of each
-drone's training part and evaluates on the rest (never the test windows). Numbers claimed in the
-README are confirmed with ``dronefl fl-offline`` (the real Flower path).
+batch size, weighting, FedProx's mu on any model (``--proximal-mu``), AdaIN slopes kept at their
+start (``--freeze-style-slope``), rounds and the hold-out: ``--validation`` trains on the
+first 80 % of each drone's training part and evaluates on the rest (never the test windows).
+Numbers claimed in the README are confirmed with ``dronefl fl-offline`` (the real Flower path).
 """
 
 from __future__ import annotations
@@ -33,8 +34,18 @@ from dronefl.fl.methods import METHODS
 from dronefl.fl.records import FlSettings
 from dronefl.logs import load_run
 from dronefl.models.model import BOX_SIZES, STYLE_INITS, build_model
-from dronefl.models.train import evaluate, train_local
+from dronefl.models.train import evaluate, proximal_term, train_local
 from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels, split_windows
+
+
+def build(config, seed: int, freeze_slope: bool) -> torch.nn.Module:
+    """The model of ``config``; with ``freeze_slope`` its AdaIN styles' A is not trained."""
+    model = build_model(config, seed=seed)
+    if freeze_slope:
+        for name, w in model.named_parameters():
+            if name.endswith("style.weight"):
+                w.requires_grad_(False)
+    return model
 
 
 def flat(state: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -79,12 +90,20 @@ def main() -> None:
         default=0.0,
         help="FedAvgM's server momentum (Flower's update rule, server lr 1)",
     )
+    p.add_argument(
+        "--proximal-mu", type=float, default=0.0, help="FedProx's mu on every drone (0: none)"
+    )
     p.add_argument("--pooled", action="store_true")
     p.add_argument("--local", action="store_true")
     p.add_argument("--validation", action="store_true")
     p.add_argument("--sites", default=None, help="AdaIN sites, e.g. encoder,head")
     p.add_argument("--head-init", default=None, choices=STYLE_INITS)
     p.add_argument("--box-size", default=None, choices=BOX_SIZES)
+    p.add_argument(
+        "--freeze-style-slope",
+        action="store_true",
+        help="keep every AdaIN style's altitude slope A at its start (train b only)",
+    )
     p.add_argument("--every", type=int, default=5, help="print every N rounds")
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args()
@@ -115,14 +134,15 @@ def main() -> None:
         f"head init {model_config.head_style_init} box size {model_config.box_size} "
         f"E={args.epochs} lr={args.lr} "
         f"decay={args.lr_decay} batch={args.batch} weighting={args.weighting} "
-        f"server momentum {args.server_momentum} windows per drone (train/eval): "
+        f"server momentum {args.server_momentum} mu {args.proximal_mu} "
+        f"frozen slopes {args.freeze_style_slope} windows per drone (train/eval): "
         + ", ".join(f"{d}: {len(tr)}/{len(te)}" for d, (tr, te) in splits.items())
     )
     started = time.perf_counter()
     if args.pooled or args.local:
         groups = {0: drones} if args.pooled else {d: [d] for d in drones}
         for g, members in groups.items():
-            model = build_model(model_config, seed=settings.seed)
+            model = build(model_config, settings.seed, args.freeze_style_slope)
             data = WindowSet.concat([splits[d][0] for d in members])
             for r in range(1, args.rounds + 1):
                 train_local(model, data, settings.train_config(r, g))
@@ -135,17 +155,18 @@ def main() -> None:
                     )
         print(f"wall {time.perf_counter() - started:.1f} s")
         return
-    global_state = build_model(model_config, seed=settings.seed).state_dict()
+    global_state = build(model_config, settings.seed, args.freeze_style_slope).state_dict()
     velocity: dict[str, torch.Tensor] = {}
     for r in range(1, args.rounds + 1):
         states, weights, losses, drift = [], [], {}, {}
         g = flat(global_state)
         for d in drones:
-            model = build_model(model_config, seed=settings.seed)
+            model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)
             # Adam's lr decays as lr * decay^(round - 1).
             config = replace(settings.train_config(r, d), lr=args.lr * args.lr_decay ** (r - 1))
-            stats = train_local(model, splits[d][0], config)
+            prox = proximal_term(global_state, args.proximal_mu) if args.proximal_mu else None
+            stats = train_local(model, splits[d][0], config, prox)
             states.append(model.state_dict())
             weights.append(stats.num_examples if args.weighting == "samples" else 1.0)
             losses[d] = evaluate(model, splits[d][0])
@@ -163,7 +184,7 @@ def main() -> None:
             velocity = pseudo
         global_state = {k: global_state[k] - velocity[k] for k in global_state}
         if r % args.every == 0 or r == args.rounds or r == 1:
-            model = build_model(model_config, seed=settings.seed)
+            model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)
             test = {d: evaluate(model, splits[d][1]) for d in drones}
             line = (

@@ -50,6 +50,7 @@ from torch import nn
 from dronefl.models.windows import (
     ALTITUDE_FEATURE,
     ALTITUDE_SCALE_M,
+    BOX_DIM,
     BOX_SIZE_FEATURES,
     FEATURE_DIM,
     PAPER_FIELD_M,
@@ -66,9 +67,12 @@ ADAIN_SITES: tuple[str, ...] = ("encoder", "head")
 #: normalisation) or ``altitude`` (mu = 0, sigma = h / ALTITUDE_SCALE_M: outputs in proportion
 #: to the altitude, as a camera footprint is).
 STYLE_INITS: tuple[str, ...] = ("identity", "altitude")
-#: How the model reads box width and height: ``image`` (fractions of the image, the paper's)
-#: or ``metric`` (times the step's altitude / 50 m: in proportion to the ground size).
-BOX_SIZES: tuple[str, ...] = ("image", "metric")
+#: How the model reads boxes: ``image`` (fractions of the image, the paper's), ``metric``
+#: (width and height times the step's altitude / 50 m: in proportion to the ground size) or
+#: ``ground`` (the centre's offset from the image centre as well: in proportion to the
+#: target's ground offset from below the drone).
+BOX_SIZES: tuple[str, ...] = ("image", "metric", "ground")
+_METRIC_FEATURES = {"metric": BOX_SIZE_FEATURES, "ground": slice(0, BOX_DIM)}
 
 
 @dataclass(frozen=True)
@@ -370,7 +374,7 @@ class TrajectoryTransformer(nn.Module):
         )
         self.head = nn.Linear(d, 2)
         self.output_scale = config.frame.scale_m  # m per head unit
-        self.metric_box = config.box_size == "metric"
+        self.box_size = config.box_size
 
     def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
         b, t, f = features.shape
@@ -379,8 +383,8 @@ class TrajectoryTransformer(nn.Module):
                 f"features must have shape (B, {self.config.past_steps}, "
                 f"{self.config.input_dim}), got {tuple(features.shape)}"
             )
-        if self.metric_box:
-            features = metric_box_sizes(features)
+        if self.box_size != "image":
+            features = metric_box(features, self.box_size)
         x = self.embed(features) + self.pe_past  # (B, L_p, d)
         for k, layer in enumerate(self.encoder):
             x = layer(x)
@@ -394,15 +398,19 @@ class TrajectoryTransformer(nn.Module):
         return self.head(y) * self.output_scale  # (B, L_f, 2) m
 
 
-def metric_box_sizes(features: torch.Tensor) -> torch.Tensor:
-    """``features`` (..., F) with box width and height multiplied by the altitude feature
-    z / 50 m of the same step: ``w' = w z / 50 m``, in proportion to the vehicle's ground
-    width (a box is ``s / (2 h tan(hfov / 2))`` of the image for a vehicle of s m). Missed
+def metric_box(features: torch.Tensor, box_size: str = "metric") -> torch.Tensor:
+    """``features`` (..., F) with box features multiplied by the altitude feature z / 50 m of
+    the same step. ``metric``: width and height, ``w' = w z / 50 m``, in proportion to the
+    vehicle's ground width (a box is ``s / (2 h tan(hfov / 2))`` of the image for a vehicle of
+    s m). ``ground``: the centre's offset from the image centre too, ``c' = c z / 50 m``, in
+    proportion to the target's ground offset from the point below a nadir camera. Missed
     steps stay zero."""
+    parts = _METRIC_FEATURES[box_size]
     scale = features[..., ALTITUDE_FEATURE : ALTITUDE_FEATURE + 1]
-    sizes = features[..., BOX_SIZE_FEATURES] * scale
-    first, last = BOX_SIZE_FEATURES.start, BOX_SIZE_FEATURES.stop
-    return torch.cat([features[..., :first], sizes, features[..., last:]], dim=-1)
+    return torch.cat(
+        [features[..., : parts.start], features[..., parts] * scale, features[..., parts.stop :]],
+        dim=-1,
+    )
 
 
 def build_model(config: PredictorConfig, seed: int = 0) -> TrajectoryTransformer:

@@ -12,7 +12,7 @@ from dronefl.models.model import (
     _LastDimSoftmax,
     build_model,
     count_parameters,
-    metric_box_sizes,
+    metric_box,
     predictor_config,
 )
 from dronefl.models.windows import (
@@ -166,7 +166,7 @@ def test_metric_box_sizes_by_hand():
         detected = np.array([True, True, False])
         rows.append(window_features(boxes, detected, odometry, np.zeros(2), PositionFrame()))
     image = torch.from_numpy(np.stack(rows))  # (2 altitudes, 3 steps, F)
-    metric = metric_box_sizes(image)
+    metric = metric_box(image)
     expected = 10 * np.array([4.0, 2.0]) / (footprint * ALTITUDE_SCALE_M)
     for k in range(2):
         np.testing.assert_allclose(metric[k, :2, 2:4].numpy(), np.tile(expected, (2, 1)), rtol=1e-6)
@@ -176,11 +176,42 @@ def test_metric_box_sizes_by_hand():
     assert torch.equal(metric[..., untouched], image[..., untouched])
 
 
+def test_ground_boxes_read_a_ground_offset_the_same_at_every_altitude():
+    # A target 6 m east and 3 m north of the point below a nadir camera with an 80 deg field:
+    # its box centre sits 6 / (footprint(h) / 2) of the half image from the centre, so
+    # 2 (cx - 0.5) * h / 50 m is the same at 20 m and at 60 m, and so is the 4 m x 2 m box.
+    footprint = 2 * np.tan(np.radians(40.0))
+    rows = []
+    for h in (20.0, 60.0):
+        half = footprint * h / 2
+        box = [
+            0.5 + 6.0 / half / 2,
+            0.5 + 3.0 / half / 2,
+            4.0 / (footprint * h),
+            2.0 / (footprint * h),
+        ]
+        odometry = np.zeros((2, 12))
+        odometry[:, 2] = h
+        detected = np.array([True, False])
+        rows.append(
+            window_features(np.tile(box, (2, 1)), detected, odometry, np.zeros(2), PositionFrame())
+        )
+    image = torch.from_numpy(np.stack(rows))  # (2 altitudes, 2 steps, F)
+    ground = metric_box(image, "ground")
+    torch.testing.assert_close(ground[0, 0, :4], ground[1, 0, :4])
+    expected = np.array([6.0, 3.0]) / (footprint * ALTITUDE_SCALE_M / 2)
+    np.testing.assert_allclose(ground[0, 0, :2].numpy(), expected, rtol=1e-6)
+    assert image[0, 0, 0] == pytest.approx(3 * image[1, 0, 0])  # in image units: 3x apart
+    torch.testing.assert_close(ground[..., 2:4], metric_box(image)[..., 2:4])
+    assert torch.equal(ground[:, 1], image[:, 1])  # a missed step stays all zero
+    assert torch.equal(ground[..., 4:], image[..., 4:])
+
+
 def test_a_metric_model_is_an_image_model_fed_metric_sizes():
     metric = build_model(predictor_config("dronefl", box_size="metric"), seed=2).eval()
     image = build_model(predictor_config("dronefl"), seed=2).eval()
     x, h = torch.rand(5, 10, FEATURE_DIM), torch.full((5,), 40.0)
-    torch.testing.assert_close(metric(x, h), image(metric_box_sizes(x), h))
+    torch.testing.assert_close(metric(x, h), image(metric_box(x), h))
     assert not torch.allclose(metric(x, h), image(x, h))
     with pytest.raises(ValueError, match="box_size"):
         PredictorConfig(box_size="pixels")
