@@ -16,7 +16,9 @@ round:
 ``--pooled`` trains the same model on all drones' pooled training windows instead (the
 ``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, lr,
 batch size, weighting, FedProx's mu on any model (``--proximal-mu``), AdaIN slopes kept at their
-start (``--freeze-style-slope``), rounds and the hold-out: ``--validation`` trains on the
+start (``--freeze-style-slope``), a server optimiser (``--server-opt adam|yogi --server-lr``:
+Flower's FedAdam / FedYogi update, checked against Flower in ``tests/fl/test_fl_diagnose.py``),
+rounds and the hold-out: ``--validation`` trains on the
 first 80 % of each drone's training part and evaluates on the rest (never the test windows).
 Numbers claimed in the README are confirmed with ``dronefl fl-offline`` (the real Flower path).
 """
@@ -34,7 +36,7 @@ from dronefl.fl.methods import METHODS
 from dronefl.fl.records import FlSettings
 from dronefl.logs import load_run
 from dronefl.models.model import BOX_SIZES, STYLE_INITS, build_model
-from dronefl.models.train import evaluate, proximal_term, train_local
+from dronefl.models.train import OPTIMIZERS, evaluate, proximal_term, train_local
 from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels, split_windows
 
 
@@ -46,6 +48,41 @@ def build(config, seed: int, freeze_slope: bool) -> torch.nn.Module:
             if name.endswith("style.weight"):
                 w.requires_grad_(False)
     return model
+
+
+def server_step(
+    args: argparse.Namespace,
+    server_round: int,
+    current: dict[str, torch.Tensor],
+    average: dict[str, torch.Tensor],
+    moments: dict[str, dict[str, torch.Tensor]],
+) -> dict[str, torch.Tensor]:
+    """Flower's FedAdam / FedYogi server step (Reddi et al., 2021, as in
+    ``flwr.serverapp.strategy``; beta_1 0.9, beta_2 0.99, tau 1e-3): with
+    ``delta = average - current``, ``m <- b1 m + (1 - b1) delta``; Adam
+    ``v <- b2 v + (1 - b2) delta^2``, Yogi ``v <- v - (1 - b2) delta^2 sign(v - delta^2)``;
+    ``w <- w + eta_t m / (sqrt(v) + tau)`` with Flower's bias-corrected ``eta_t``. Updates
+    ``moments`` in place."""
+    b1, b2, tau = 0.9, 0.99, 1e-3
+    m, v = moments["m"], moments["v"]
+    new = {}
+    for k in current:
+        if not current[k].is_floating_point():
+            new[k] = average[k]
+            continue
+        delta = average[k] - current[k]
+        m[k] = b1 * m.get(k, torch.zeros_like(delta)) + (1 - b1) * delta
+        sq = delta**2
+        if args.server_opt == "adam":
+            v[k] = b2 * v.get(k, torch.zeros_like(delta)) + (1 - b2) * sq
+        else:
+            previous = v.get(k, torch.zeros_like(delta))
+            v[k] = previous - (1 - b2) * sq * torch.sign(previous - sq)
+        eta = args.server_lr
+        if args.server_opt == "adam":
+            eta *= np.sqrt(1 - b2 ** (server_round + 1.0)) / (1 - b1 ** (server_round + 1.0))
+        new[k] = current[k] + eta * m[k] / (v[k].sqrt() + tau)
+    return new
 
 
 def flat(state: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -79,6 +116,7 @@ def main() -> None:
     p.add_argument("--rounds", type=int, default=50)
     p.add_argument("--epochs", type=int, default=10)
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--optimizer", choices=OPTIMIZERS, default="adam", help="local optimiser")
     p.add_argument("--lr-decay", type=float, default=1.0, help="lr x decay^(round - 1)")
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--stride", type=int, default=10)
@@ -90,6 +128,13 @@ def main() -> None:
         default=0.0,
         help="FedAvgM's server momentum (Flower's update rule, server lr 1)",
     )
+    p.add_argument(
+        "--server-opt",
+        choices=("none", "adam", "yogi"),
+        default="none",
+        help="server optimiser on the averaged update, as Flower's FedAdam / FedYogi",
+    )
+    p.add_argument("--server-lr", type=float, default=1e-2, help="FedAdam / FedYogi's eta")
     p.add_argument(
         "--proximal-mu", type=float, default=0.0, help="FedProx's mu on every drone (0: none)"
     )
@@ -132,7 +177,7 @@ def main() -> None:
     print(
         f"{args.method} {model_config.adain_sites if model_config.adain else 'no AdaIN'} "
         f"head init {model_config.head_style_init} box size {model_config.box_size} "
-        f"E={args.epochs} lr={args.lr} "
+        f"E={args.epochs} {args.optimizer} lr={args.lr} "
         f"decay={args.lr_decay} batch={args.batch} weighting={args.weighting} "
         f"server momentum {args.server_momentum} mu {args.proximal_mu} "
         f"frozen slopes {args.freeze_style_slope} windows per drone (train/eval): "
@@ -145,7 +190,9 @@ def main() -> None:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             data = WindowSet.concat([splits[d][0] for d in members])
             for r in range(1, args.rounds + 1):
-                train_local(model, data, settings.train_config(r, g))
+                train_local(
+                    model, data, replace(settings.train_config(r, g), optimizer=args.optimizer)
+                )
                 if r % args.every == 0 or r == args.rounds:
                     test = {d: evaluate(model, splits[d][1]) for d in members}
                     print(
@@ -157,6 +204,7 @@ def main() -> None:
         return
     global_state = build(model_config, settings.seed, args.freeze_style_slope).state_dict()
     velocity: dict[str, torch.Tensor] = {}
+    moments: dict[str, dict[str, torch.Tensor]] = {"m": {}, "v": {}}
     for r in range(1, args.rounds + 1):
         states, weights, losses, drift = [], [], {}, {}
         g = flat(global_state)
@@ -164,7 +212,11 @@ def main() -> None:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)
             # Adam's lr decays as lr * decay^(round - 1).
-            config = replace(settings.train_config(r, d), lr=args.lr * args.lr_decay ** (r - 1))
+            config = replace(
+                settings.train_config(r, d),
+                lr=args.lr * args.lr_decay ** (r - 1),
+                optimizer=args.optimizer,
+            )
             prox = proximal_term(global_state, args.proximal_mu) if args.proximal_mu else None
             stats = train_local(model, splits[d][0], config, prox)
             states.append(model.state_dict())
@@ -182,7 +234,10 @@ def main() -> None:
             velocity = {k: args.server_momentum * velocity[k] + pseudo[k] for k in pseudo}
         else:
             velocity = pseudo
-        global_state = {k: global_state[k] - velocity[k] for k in global_state}
+        if args.server_opt == "none":
+            global_state = {k: global_state[k] - velocity[k] for k in global_state}
+        else:
+            global_state = server_step(args, r, global_state, average, moments)
         if r % args.every == 0 or r == args.rounds or r == 1:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)

@@ -23,17 +23,27 @@ from dronefl.models.windows import WindowSet
 Regularizer = Callable[[nn.Module], torch.Tensor]
 
 
+OPTIMIZERS: tuple[str, ...] = ("adam", "sgd")
+SGD_MOMENTUM = 0.9
+
+
 @dataclass(frozen=True)
 class TrainConfig:
-    """Local training: ``epochs`` E, Adam learning rate ``lr``, ``batch_size`` windows, and
-    the ``seed`` of the shuffling and dropout."""
+    """Local training: ``epochs`` E, learning rate ``lr``, ``batch_size`` windows, the
+    ``seed`` of the shuffling and dropout, and the ``optimizer``: ``adam`` (the paper's) or
+    ``sgd`` (with momentum 0.9), started afresh by every call."""
 
     epochs: int = 10
     lr: float = 1e-3
     batch_size: int = 128
     seed: int = 0
+    optimizer: str = "adam"
 
     def __post_init__(self) -> None:
+        if self.optimizer not in OPTIMIZERS:
+            raise ValueError(
+                f"TrainConfig.optimizer must be one of {OPTIMIZERS}, got {self.optimizer!r}"
+            )
         if self.epochs < 1 or self.batch_size < 1:
             raise ValueError("TrainConfig.epochs and batch_size must be >= 1")
         if not self.lr > 0:
@@ -88,7 +98,10 @@ def train_local(
     if len(data) == 0:
         raise ValueError("train_local: no training windows")
     features, altitude, labels = _tensors(data)
-    optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, fused=True)
+    if config.optimizer == "adam":
+        optimiser = torch.optim.Adam(model.parameters(), lr=config.lr, fused=True)
+    else:
+        optimiser = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=SGD_MOMENTUM)
     generator = torch.Generator().manual_seed(config.seed)
     torch.manual_seed(config.seed)
     model.train()

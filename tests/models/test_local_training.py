@@ -1,6 +1,7 @@
 """Local training: FedProx's proximal term, determinism, learning, the MSE metric."""
 
 import numpy as np
+import pytest
 import torch
 from torch import nn
 
@@ -61,3 +62,32 @@ def test_evaluate_is_the_mean_squared_error_in_square_metres(tiny_log):
     data = _windows(tiny_log)
     # A model predicting the origin has MSE = mean of the squared labels.
     assert np.isclose(evaluate(_Zero(), data), np.mean(data.labels.astype(np.float64) ** 2))
+
+
+def test_sgd_is_plain_sgd_with_momentum_and_unknown_optimisers_are_rejected():
+    # Prepare: a 1-weight model fitting y = 0 from x = 1 with one window per step: loss w^2,
+    # gradient 2 w. SGD with momentum 0.9 from w = 1, lr 0.1 (PyTorch's buffer starts at the
+    # first gradient): v1 = 2, w1 = 0.8; v2 = 0.9 * 2 + 2 * 0.8 = 3.4, w2 = 0.8 - 0.34 = 0.46.
+    class _Line(nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.w = nn.Parameter(torch.ones(()))
+
+        def forward(self, features: torch.Tensor, altitude: torch.Tensor) -> torch.Tensor:
+            return self.w * features[:, :1, :2]
+
+    class _Data:
+        features = np.ones((1, 1, 2), np.float32)
+        altitude = np.ones(1, np.float32)
+        labels = np.zeros((1, 1, 2), np.float32)
+
+        def __len__(self) -> int:
+            return 1
+
+    model = _Line()
+    # Execute
+    train_local(model, _Data(), TrainConfig(epochs=2, lr=0.1, batch_size=1, optimizer="sgd"))
+    # Assert
+    assert model.w.item() == pytest.approx(0.46, abs=1e-6)
+    with pytest.raises(ValueError, match="optimizer"):
+        TrainConfig(optimizer="lbfgs")
