@@ -14,13 +14,14 @@ round:
   the global model's MSE on each drone's training windows.
 
 ``--pooled`` trains the same model on all drones' pooled training windows instead (the
-``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, lr,
-batch size, weighting, FedProx's mu on any model (``--proximal-mu``), AdaIN slopes kept at their
-start (``--freeze-style-slope``), a server optimiser (``--server-opt adam|yogi --server-lr``:
-Flower's FedAdam / FedYogi update, checked against Flower in ``tests/fl/test_fl_diagnose.py``),
-rounds and the hold-out: ``--validation`` trains on the
-first 80 % of each drone's training part and evaluates on the rest (never the test windows).
-Numbers claimed in the README are confirmed with ``dronefl fl-offline`` (the real Flower path).
+``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, the
+local optimiser (``--optimizer adam|sgd``) and its lr, batch size, weighting, FedProx's mu on
+any model (``--proximal-mu``), AdaIN slopes kept at their start (``--freeze-style-slope``), a
+server optimiser (``--server-opt adam|yogi --server-lr``: Flower's FedAdam / FedYogi update,
+checked against Flower in ``tests/fl/test_fl_diagnose.py``), rounds and the hold-out:
+``--validation`` trains on the first 80 % of each drone's training part and evaluates on the
+rest (never the test windows). Numbers claimed in the README are confirmed with
+``dronefl fl-offline`` (the real Flower path).
 """
 
 from __future__ import annotations

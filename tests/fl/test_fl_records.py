@@ -120,6 +120,12 @@ def test_presets_set_the_training_and_the_adain_placement():
     assert (metric.model.box_size, metric.batch_size) == ("metric", 64)
     # The FL baselines read boxes as the paper's do, whatever the preset.
     assert replace(metric, method="fedavg").model.box_size == "image"
+    sgd = PRESETS["metric-sgd"].apply(FlSettings("r", "o"))
+    assert sgd.train_config(1, 1).optimizer == "sgd" and sgd.train_config(1, 1).lr == 1e-4
+    assert replace(sgd, optimizer="adam") == replace(metric, lr=1e-4)
+    assert metric.train_config(1, 1).optimizer == "adam"
+    with pytest.raises(SettingsError, match="optimizer"):
+        FlSettings("r", "o", optimizer="rmsprop")
     with pytest.raises(SettingsError, match="box_size"):
         FlSettings("r", "o", box_size="pixels")
     with pytest.raises(SettingsError, match="adain_sites"):
