@@ -200,7 +200,7 @@ PresetOption = Annotated[
     typer.Option(
         "--config",
         help="Training setting: ours (the closed loop's) | paper (E=10, Adam 1e-3) | metric "
-        "(ours + box sizes x altitude, batch 64) | metric-sgd (metric with SGD, lr 1e-4).",
+        "(ours + box sizes x altitude, batch 64) | metric-sgd (metric with SGD, lr 3e-4).",
     ),
 ]
 

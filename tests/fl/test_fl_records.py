@@ -121,8 +121,8 @@ def test_presets_set_the_training_and_the_adain_placement():
     # The FL baselines read boxes as the paper's do, whatever the preset.
     assert replace(metric, method="fedavg").model.box_size == "image"
     sgd = PRESETS["metric-sgd"].apply(FlSettings("r", "o"))
-    assert sgd.train_config(1, 1).optimizer == "sgd" and sgd.train_config(1, 1).lr == 1e-4
-    assert replace(sgd, optimizer="adam") == replace(metric, lr=1e-4)
+    assert sgd.train_config(1, 1).optimizer == "sgd" and sgd.train_config(1, 1).lr == 3e-4
+    assert replace(sgd, optimizer="adam") == replace(metric, lr=3e-4)
     assert metric.train_config(1, 1).optimizer == "adam"
     with pytest.raises(SettingsError, match="optimizer"):
         FlSettings("r", "o", optimizer="rmsprop")
