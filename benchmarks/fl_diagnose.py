@@ -62,9 +62,14 @@ def server_step(
     ``flwr.serverapp.strategy``; beta_1 0.9, beta_2 0.99, tau 1e-3): with
     ``delta = average - current``, ``m <- b1 m + (1 - b1) delta``; Adam
     ``v <- b2 v + (1 - b2) delta^2``, Yogi ``v <- v - (1 - b2) delta^2 sign(v - delta^2)``;
-    ``w <- w + eta_t m / (sqrt(v) + tau)`` with Flower's bias-corrected ``eta_t``. Updates
-    ``moments`` in place."""
+    ``w <- w + eta_t m / (sqrt(v) + tau)``, ``eta_t`` bias-corrected for Adam as Flower does
+    (``eta sqrt(1 - b2^(t+1)) / (1 - b1^(t+1))``) and ``eta`` for Yogi. Updates ``moments``
+    in place."""
     b1, b2, tau = 0.9, 0.99, 1e-3
+    adam = args.server_opt == "adam"
+    eta = args.server_lr
+    if adam:
+        eta *= np.sqrt(1 - b2 ** (server_round + 1.0)) / (1 - b1 ** (server_round + 1.0))
     m, v = moments["m"], moments["v"]
     new = {}
     for k in current:
@@ -74,14 +79,11 @@ def server_step(
         delta = average[k] - current[k]
         m[k] = b1 * m.get(k, torch.zeros_like(delta)) + (1 - b1) * delta
         sq = delta**2
-        if args.server_opt == "adam":
-            v[k] = b2 * v.get(k, torch.zeros_like(delta)) + (1 - b2) * sq
+        previous = v.get(k, torch.zeros_like(delta))
+        if adam:
+            v[k] = b2 * previous + (1 - b2) * sq
         else:
-            previous = v.get(k, torch.zeros_like(delta))
             v[k] = previous - (1 - b2) * sq * torch.sign(previous - sq)
-        eta = args.server_lr
-        if args.server_opt == "adam":
-            eta *= np.sqrt(1 - b2 ** (server_round + 1.0)) / (1 - b1 ** (server_round + 1.0))
         new[k] = current[k] + eta * m[k] / (v[k].sqrt() + tau)
     return new
 

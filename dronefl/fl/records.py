@@ -82,7 +82,7 @@ class FlSettings:
     ``optimizer`` the local (and pooled) optimiser, ``adam`` or ``sgd`` with momentum (see
     :class:`~dronefl.models.train.TrainConfig`). The
     defaults are the setting the closed loop's models are pretrained with; :data:`PRESETS`
-    names the paper's and the later ``metric`` one.
+    names the paper's and the later ``metric`` and ``metric-sgd`` ones.
     """
 
     run_dir: str
@@ -444,9 +444,9 @@ _PRESET_FIELDS = (
 
 @dataclass(frozen=True)
 class Preset:
-    """A named training setting: local epochs E, Adam's ``lr``, the ``batch_size``, where AdaIN
-    sits (``adain_sites``, ``head_style_init``), how boxes are read (``box_size``) and the local
-    ``optimizer``; see :class:`FlSettings` for each."""
+    """A named training setting: local epochs E, the optimiser's ``lr``, the ``batch_size``,
+    where AdaIN sits (``adain_sites``, ``head_style_init``), how boxes are read (``box_size``)
+    and the local ``optimizer``; see :class:`FlSettings` for each."""
 
     name: str
     epochs: int
