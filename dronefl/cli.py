@@ -500,9 +500,15 @@ LabelsOption = Annotated[
 ]
 FusionOption = Annotated[str, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
 EpochsOption = Annotated[
-    int, typer.Option("--epochs", min=1, help="Local epochs per model update.")
+    int | None,
+    typer.Option(
+        "--epochs", min=1, help="Local epochs per model update (default: the --config's)."
+    ),
 ]
-LrOption = Annotated[float, typer.Option("--lr", help="Adam learning rate of the model updates.")]
+LrOption = Annotated[
+    float | None,
+    typer.Option("--lr", help="Learning rate of the model updates (default: the --config's)."),
+]
 LabelDronesOption = Annotated[
     str,
     typer.Option(
@@ -541,8 +547,9 @@ def track(
     label_drones: LabelDronesOption = "all",
     fusion: FusionOption = "robust",
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
-    epochs: EpochsOption = 10,
-    lr: LrOption = 1e-3,
+    preset: PresetOption = "ours",
+    epochs: EpochsOption = None,
+    lr: LrOption = None,
     weights_dtype: WeightsDtypeOption = "float32",
     pretrained: PretrainedOption = Path("runs/pretrained"),
     pretrain_rounds: PretrainRoundsOption = 20,
@@ -576,6 +583,7 @@ def track(
         label_drones=label_drones,
         fusion=fusion,
         past_steps=past_steps,
+        preset=preset,
         epochs=epochs,
         lr=lr,
         weights_dtype=weights_dtype,
@@ -627,8 +635,9 @@ def table1(
     labels: LabelsOption = "smoothed",
     label_drones: LabelDronesOption = "all",
     fusion: FusionOption = "robust",
-    epochs: EpochsOption = 10,
-    lr: LrOption = 1e-3,
+    preset: PresetOption = "ours",
+    epochs: EpochsOption = None,
+    lr: LrOption = None,
     weights_dtype: WeightsDtypeOption = "float32",
     pretrained: PretrainedOption = Path("runs/pretrained"),
     pretrain_rounds: PretrainRoundsOption = 20,
@@ -649,7 +658,7 @@ def table1(
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
         scenario=specs[0], duration=duration, fl_period=fl_period, labels=labels,
-        label_drones=label_drones, fusion=fusion, epochs=epochs, lr=lr,
+        label_drones=label_drones, fusion=fusion, preset=preset, epochs=epochs, lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
@@ -665,14 +674,17 @@ def pretrain(
     rounds: Annotated[int, typer.Option(min=1, help="FL rounds / centralized epochs x10.")] = 20,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
+    preset: PresetOption = "ours",
     out: OutOption = Path("runs/pretrained"),
 ) -> None:
     """Pretrain the closed loop's models in the crop field (DroneFL by FL, the large
-    centralized model on pooled data), L_p -> L_f = 1. `track` does this on demand.
+    centralized model on pooled data), L_p -> L_f = 1, and print each model's prediction
+    error (MSE, m^2) per drone on the held-out last 20 % of the recording. `track` does this
+    on demand (with the same --config).
 
-    Example: dronefl pretrain --scenario case2 --out runs/pretrained
+    Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
     """
-    from dronefl.experiments.pretrain import KINDS, PretrainSpec
+    from dronefl.experiments.pretrain import KINDS, PretrainSpec, held_out_mse
     from dronefl.experiments.pretrain import pretrain as run
 
     spec = load_scenario(scenario)
@@ -680,9 +692,26 @@ def pretrain(
         raise fail("--rounds and --past-steps: must be >= 1")
     if not duration > 0:
         raise fail(f"--duration: must be positive, got {duration}")
-    for kind in KINDS:
-        pretraining = PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration)
+    try:
+        specs = [
+            PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration, preset=preset)
+            for kind in KINDS
+        ]
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    for pretraining in specs:
         run(pretraining, out)
+    for pretraining in specs:
+        try:
+            per_drone = held_out_mse(pretraining, out)
+        except ValueError as exc:  # no drone evaluated: every update failed (logged above)
+            raise fail(f"pretraining {pretraining.kind}: {exc}") from None
+        mean = sum(per_drone.values()) / len(per_drone)
+        errors = " / ".join(f"{v:.3g}" for v in per_drone.values())
+        typer.echo(
+            f"{pretraining.kind:12s} held-out MSE {mean:.4g} m^2 "
+            f"(drones {' / '.join(map(str, per_drone))}: {errors})"
+        )
         typer.echo(f"wrote {pretraining.settings(out).checkpoint_path}")
 
 

@@ -480,9 +480,21 @@ def _finished(settings: FlSettings) -> list[RoundRecord] | None:
         settings.checkpoint_path,
         settings.history_path,
         settings.method,
-        like=initial_state(settings),
+        like=_start_state(settings),
     )
     return checkpoint.history if checkpoint.server_round >= settings.rounds else None
+
+
+def _start_state(settings: FlSettings) -> dict[str, torch.Tensor]:
+    """The weights a run of ``settings`` starts from, as its checkpoint holds them: the seeded
+    initial global model, or for ``local`` training one copy per drone of the run (keys
+    ``drone_<id>.<parameter>``)."""
+    state = initial_state(settings)
+    if settings.method_spec.training != "local":
+        return state
+    logs = Path(settings.run_dir).glob("drone_*.npz")
+    ids = sorted(int(p.stem.removeprefix("drone_")) for p in logs)
+    return {f"drone_{d}.{k}": v for d in ids for k, v in state.items()}
 
 
 def drone_splits(settings: FlSettings) -> dict[int, tuple[WindowSet, WindowSet]]:
@@ -543,9 +555,7 @@ def run_local(settings: FlSettings, on_round: OnRound | None = None) -> list[Rou
     every drone's model (keys ``drone_<id>.<parameter>``)."""
     torch.set_num_threads(1)
     splits = drone_splits(settings)
-    fresh = build_model(settings.model, seed=settings.seed).state_dict()
-    start = {f"drone_{d}.{k}": v for d in splits for k, v in fresh.items()}
-    state, offset, history = _resume_point(settings, start)
+    state, offset, history = _resume_point(settings, _start_state(settings))
     models = {}
     for d in splits:
         models[d] = build_model(settings.model, seed=settings.seed)

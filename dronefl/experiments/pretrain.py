@@ -29,8 +29,9 @@ from dronefl.config import Scenario
 from dronefl.experiments.fl_offline import run_centralized
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import load_checkpoint
-from dronefl.fl.records import FlSettings
+from dronefl.fl.records import PRESETS, FlSettings
 from dronefl.fl.simulation import run_federated
+from dronefl.models.model import PredictorConfig
 from dronefl.progress import progress_bar
 
 PRETRAIN_SEED = 1000
@@ -44,7 +45,8 @@ class PretrainSpec:
     """What is pretrained: ``kind`` (one of :data:`KINDS`) for ``scenario``, on ``duration``
     s of crop field recorded with seed ``recording_seed``, with windows of ``past_steps``
     L_p -> 1 every ``stride`` samples, for ``rounds`` FL rounds (or ``rounds`` x E epochs of
-    centralized training)."""
+    centralized training), with the training setting ``preset`` (a key of
+    :data:`dronefl.fl.records.PRESETS`: model options, E, lr, batch and optimiser)."""
 
     scenario: Scenario
     kind: str = "dronefl"
@@ -53,8 +55,11 @@ class PretrainSpec:
     rounds: int = 20
     duration: float = 600.0
     recording_seed: int = PRETRAIN_SEED
+    preset: str = "ours"
 
     def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         if self.kind not in KINDS:
             raise ValueError(f"pretrained model kind must be one of {KINDS}, got {self.kind!r}")
         if not self.duration > 0:
@@ -68,7 +73,7 @@ class PretrainSpec:
     def settings(self, folder: Path) -> FlSettings:
         """The Flower/centralized training settings, writing under ``folder``."""
         root = Path(folder) / self.scenario.name
-        base = FlSettings(
+        unset = FlSettings(
             run_dir=str(root / f"data-{self.data_key}"),
             out_dir="",
             method=self.kind,
@@ -78,8 +83,14 @@ class PretrainSpec:
             stride=self.stride,
             seed=0,
         )
+        base = PRESETS[self.preset].apply(unset)
         key = _digest([self.data_key, _settings_key(base), repr(base.model)])
         return dataclasses.replace(base, out_dir=str(root / f"{self.kind}-{key}"))
+
+    @property
+    def model(self) -> PredictorConfig:
+        """The architecture pretrained (and flown by the episodes that start from it)."""
+        return self.settings(Path(".")).model
 
 
 def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[str, torch.Tensor]:
@@ -114,6 +125,18 @@ def pretrained_state(
         if checkpoint.server_round >= settings.rounds:
             return checkpoint.state
     return pretrain(spec, folder, progress=progress)
+
+
+def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
+    """The pretrained model's prediction error per drone (MSE, m^2, one step ahead) on the
+    held-out part of the crop-field recording: the chronologically last 1 - train_fraction
+    (20 %) of each drone's windows, which pretraining never trains on. Read from the last
+    round of the run's history; raises ``ValueError`` when the model is not pretrained."""
+    settings = spec.settings(folder)
+    checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
+    if not checkpoint.history or not checkpoint.history[-1].test_mse:
+        raise ValueError(f"{settings.history_path}: no evaluated round")
+    return dict(sorted(checkpoint.history[-1].test_mse.items()))
 
 
 def _settings_key(settings: FlSettings) -> dict:

@@ -53,11 +53,11 @@ from dronefl.experiments.loop_checkpoint import (
     save_loop_checkpoint,
 )
 from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
-from dronefl.fl.records import WEIGHT_DTYPES
+from dronefl.fl.records import PRESETS, WEIGHT_DTYPES
 from dronefl.fl.simulation import run_session
 from dronefl.learners import LEARNERS, Learner, LearnerSetup
 from dronefl.learners.federated import session_settings
-from dronefl.models.model import build_model, predictor_config
+from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.perception import make_detector
@@ -96,7 +96,9 @@ class TrackConfig:
     drone learns from which label (:data:`dronefl.tracking.labels.LABEL_DRONES`: ``all``,
     the paper; ``others``; ``lower``); ``fusion`` the cloud's fusion method
     (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``);
-    ``epochs`` local epochs per update and ``lr`` their Adam learning rate;
+    ``preset`` the training setting (a key of :data:`dronefl.fl.records.PRESETS`: the model
+    options, batch and optimiser of the pretraining and of every update); ``epochs`` local
+    epochs per update and ``lr`` their learning rate (``None``: the preset's);
     ``stride`` samples between training windows; ``past_steps`` L_p; ``runtime`` of the
     on-drone predictor; ``weights_dtype`` number format of the model weights exchanged by
     DroneFL (``float32`` or ``float16``); ``pretrained`` folder of the pretrained models;
@@ -117,8 +119,9 @@ class TrackConfig:
     labels: str = "smoothed"
     label_drones: str = "all"
     fusion: str = "robust"
-    epochs: int = 10
-    lr: float = 1e-3
+    preset: str = "ours"
+    epochs: int | None = None
+    lr: float | None = None
     stride: int = 2
     past_steps: int = 10
     runtime: str = "onnx"
@@ -131,6 +134,11 @@ class TrackConfig:
     resume: bool = False
 
     def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
+        for name in ("epochs", "lr"):  # unset: the preset's
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, getattr(PRESETS[self.preset], name))
         if self.method not in TRACK_METHODS:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(TRACK_METHODS)}")
         if self.labels not in LABEL_SOURCES:
@@ -165,6 +173,7 @@ class TrackConfig:
             stride=self.stride,
             rounds=self.pretrain_rounds,
             duration=self.pretrain_seconds,
+            preset=self.preset,
         )
 
     def describe(self) -> dict[str, str | int | float | bool]:
@@ -236,7 +245,7 @@ def run_episode(config: TrackConfig, parts: LoopParts | None = None) -> EpisodeM
         (out / CHECKPOINT_NAME).unlink(missing_ok=True)
     setup = LearnerSetup(
         out, state, config.past_steps, config.stride, config.epochs, config.seed,
-        config.lr, config.weights_dtype, resumed=saved is not None,
+        config.lr, config.weights_dtype, preset=config.preset, resumed=saved is not None,
     )  # fmt: skip
     if not config.learner.federated:
         return _fly(config, config.learner(setup), state, parts, saved)
@@ -281,7 +290,7 @@ class ClosedLoop:
     ) -> None:
         scenario = config.scenario
         self.config, self.scenario, self.learner = config, scenario, learner
-        self.model_kind = "large" if learner.model_kind == "centralized" else "dronefl"
+        self.model_config = config.pretrain_spec().model
         shared = self._predictor(state)
         self.predictors = {d.id: shared for d in scenario.drones}
         self.world = saved.world if saved else World(scenario, config.environment, config.seed)
@@ -407,7 +416,7 @@ class ClosedLoop:
 
     def _predictor(self, state: dict[str, torch.Tensor]) -> TrajectoryPredictor:
         """A predictor (its runtime compiled) with the weights ``state``."""
-        model = build_model(predictor_config(self.model_kind, self.config.past_steps, 1))
+        model = build_model(self.model_config)
         model.load_state_dict(state)
         return TrajectoryPredictor(model, runtime=self.config.runtime)
 

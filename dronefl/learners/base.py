@@ -18,13 +18,14 @@ Adding a method is one subclass here and one line in :data:`dronefl.learners.LEA
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 import torch
 
+from dronefl.fl.records import PRESETS, FlSettings
 from dronefl.models.online import OnboardRecord
 
 if TYPE_CHECKING:
@@ -35,10 +36,11 @@ if TYPE_CHECKING:
 class LearnerSetup:
     """What a learner is built from: the episode folder ``out``, the pretrained weights ``state``,
     the windows (``past_steps`` L_p, ``stride`` samples between windows; L_f = 1),
-    ``epochs`` per update, ``seed``, Adam's learning rate ``lr``, ``weights_dtype`` on the
-    wire, for a federated learner the episode's Flower round ``driver``, and whether the
-    episode is ``resumed`` from a checkpoint (the files of the updates before it are then
-    kept)."""
+    ``epochs`` per update, ``seed``, the learning rate ``lr``, ``weights_dtype`` on the
+    wire, the training setting ``preset`` (a key of :data:`dronefl.fl.records.PRESETS`: model
+    options, batch and optimiser; its E and lr are replaced by ``epochs`` and ``lr``), for a
+    federated learner the episode's Flower round ``driver``, and whether the episode is
+    ``resumed`` from a checkpoint (the files of the updates before it are then kept)."""
 
     out: Path
     state: dict[str, torch.Tensor]
@@ -48,8 +50,22 @@ class LearnerSetup:
     seed: int
     lr: float = 1e-3
     weights_dtype: str = "float32"
+    preset: str = "ours"
     driver: RoundDriver | None = None
     resumed: bool = False
+
+    def fl_settings(self, method: str, run_dir: str = "", out_dir: str = "") -> FlSettings:
+        """The training settings of ``method``'s updates: the preset's, with this setup's
+        windows (L_f = 1), E, lr and seed."""
+        base = FlSettings(run_dir, out_dir, method=method, future_steps=1)
+        return replace(
+            PRESETS[self.preset].apply(base),
+            past_steps=self.past_steps,
+            stride=self.stride,
+            epochs=self.epochs,
+            lr=self.lr,
+            seed=self.seed,
+        )
 
 
 @dataclass(frozen=True)

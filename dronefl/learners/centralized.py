@@ -8,7 +8,7 @@ import torch
 
 from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
 from dronefl.logs import PseudoLabels
-from dronefl.models.model import build_model, predictor_config
+from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.train import TrainConfig, train_pooled
 from dronefl.models.windows import WindowSpec, build_windows
@@ -22,7 +22,8 @@ class CentralizedLearner(Learner):
 
     def __init__(self, setup: LearnerSetup) -> None:
         super().__init__(setup)
-        self.model = build_model(predictor_config("large", setup.past_steps, 1))
+        self.settings = setup.fl_settings("centralized")
+        self.model = build_model(self.settings.model)
         self.model.load_state_dict(setup.state)
 
     def update(
@@ -36,7 +37,10 @@ class CentralizedLearner(Learner):
             pseudo = PseudoLabels(log.t, record.target_ids, own[: len(log.t)])
             windows.append(build_windows(log, pseudo.for_log(log), spec))
         seed = setup.seed * 1_000_003 + server_round
-        stats = train_pooled(self.model, windows, TrainConfig(setup.epochs, setup.lr, 128, seed))
+        train = TrainConfig(
+            setup.epochs, setup.lr, self.settings.batch_size, seed, self.settings.optimizer
+        )
+        stats = train_pooled(self.model, windows, train)
         return ModelUpdate(self.model.state_dict(), {0: stats.loss})
 
     def state(self) -> dict[str, torch.Tensor]:

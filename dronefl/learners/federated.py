@@ -10,7 +10,7 @@ folder and continues from the global model and round history of its checkpoint.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,18 +23,13 @@ from dronefl.models.online import OnboardRecord
 
 
 def session_settings(setup: LearnerSetup) -> FlSettings:
-    """The Flower settings of an episode's online rounds: the DroneFL model, L_f = 1, every
-    recorded window trained on (no test split, no federated evaluation)."""
-    return FlSettings(
-        run_dir=str(setup.out / "fl" / "round_01"),
-        out_dir=str(setup.out / "fl" / "global"),
-        method="dronefl",
-        past_steps=setup.past_steps,
-        future_steps=1,
-        stride=setup.stride,
-        epochs=setup.epochs,
-        lr=setup.lr,
-        seed=setup.seed,
+    """The Flower settings of an episode's online rounds: the DroneFL model of the setup's
+    preset, L_f = 1, the fused tracks as labels, every recorded window trained on (no test
+    split, no federated evaluation)."""
+    return replace(
+        setup.fl_settings(
+            "dronefl", str(setup.out / "fl" / "round_01"), str(setup.out / "fl" / "global")
+        ),
         labels="tracks",
         weights_dtype=setup.weights_dtype,
         train_fraction=1.0,

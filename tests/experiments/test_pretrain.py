@@ -9,9 +9,14 @@ import uuid
 from dataclasses import replace
 from pathlib import Path
 
+import pytest
+
 from dronefl.config import load_scenario, parse_scenario
-from dronefl.experiments.pretrain import PretrainSpec
+from dronefl.experiments.pretrain import PretrainSpec, held_out_mse
 from dronefl.experiments.simulate import simulate
+from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
+from dronefl.fl.records import FlSettings, RoundRecord
+from dronefl.models.model import build_model
 
 SCENARIO = load_scenario("case1")
 
@@ -98,3 +103,40 @@ def test_a_client_app_failing_in_pretraining_ends_the_command(tmp_path):
     while _processes_tagged(tag) and time.monotonic() < deadline:
         time.sleep(0.5)
     assert _processes_tagged(tag) == []
+
+
+def test_the_preset_sets_what_is_pretrained_and_ours_keeps_the_cache_key(tmp_path):
+    ours = PretrainSpec(SCENARIO, "dronefl")
+    sgd = replace(ours, preset="metric-sgd")
+
+    # "ours" is FlSettings' defaults: the settings (and so the cache key) are those of a
+    # pretraining that names no preset.
+    default = FlSettings(ours.settings(tmp_path).run_dir, "", rounds=20, future_steps=1, stride=2)
+    assert replace(ours.settings(tmp_path), out_dir="") == default
+    trained = sgd.settings(tmp_path)
+    assert (trained.optimizer, trained.lr, trained.batch_size) == ("sgd", 3e-4, 64)
+    assert sgd.model.box_size == "metric" and ours.model.box_size == "image"
+    assert replace(sgd, kind="centralized").model.d_model == 64  # the large model, same options
+    assert trained.out_dir != ours.settings(tmp_path).out_dir
+    assert trained.run_dir == ours.settings(tmp_path).run_dir  # one recording for both
+    with pytest.raises(ValueError, match="--config: 'bogus'"):
+        PretrainSpec(SCENARIO, "dronefl", preset="bogus")
+
+
+def test_held_out_mse_reads_the_last_evaluated_round(tmp_path):
+    spec = PretrainSpec(SCENARIO, "dronefl", rounds=2)
+    settings = spec.settings(tmp_path)
+    state = build_model(spec.model).state_dict()
+    history = [RoundRecord(1, {1: 4.0, 2: 3.0}), RoundRecord(2, {2: 0.5, 1: 1.5})]
+    save_checkpoint(
+        settings.checkpoint_path, settings.history_path, Checkpoint("dronefl", 2, state, history)
+    )
+    assert held_out_mse(spec, tmp_path) == {1: 1.5, 2: 0.5}
+
+    save_checkpoint(
+        settings.checkpoint_path,
+        settings.history_path,
+        Checkpoint("dronefl", 2, state, [RoundRecord(1), RoundRecord(2)]),
+    )
+    with pytest.raises(ValueError, match="no evaluated round"):
+        held_out_mse(spec, tmp_path)

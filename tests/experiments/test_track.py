@@ -2,6 +2,7 @@
 
 import json
 import pickle
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,6 +15,9 @@ from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.pretrain import PretrainSpec
 from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from dronefl.learners import LearnerSetup
+from dronefl.learners.centralized import CentralizedLearner
+from dronefl.learners.federated import session_settings
 from dronefl.logs import LogError, PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
@@ -181,3 +185,30 @@ def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained, tmp_path):
 def _paths(spec: PretrainSpec, folder):
     settings = spec.settings(folder)
     return settings.checkpoint_path, settings.history_path
+
+
+def test_the_preset_sets_the_episode_models_and_their_updates(tmp_path):
+    case1 = load_scenario("case1")
+    ours, sgd = TrackConfig(case1, tmp_path), TrackConfig(case1, tmp_path, preset="metric-sgd")
+
+    # Unset E and lr are the preset's; given ones win.
+    assert (ours.epochs, ours.lr, sgd.epochs, sgd.lr) == (10, 1e-3, 10, 3e-4)
+    assert TrackConfig(case1, tmp_path, preset="metric-sgd", lr=1e-4).lr == 1e-4
+    assert sgd.settings()["preset"] == "metric-sgd"  # another preset is another episode
+    assert sgd.pretrain_spec().model.box_size == "metric"
+    assert ours.pretrain_spec() == PretrainSpec(case1, "dronefl", stride=2)
+    with pytest.raises(ValueError, match="--config: 'nope'"):
+        TrackConfig(case1, tmp_path, preset="nope")
+
+    # The online rounds train the preset's model with its batch and optimiser.
+    setup = LearnerSetup(tmp_path, {}, 10, 2, 3, 0, 1e-4, preset="metric-sgd")
+    rounds = session_settings(setup)
+    assert (rounds.epochs, rounds.lr, rounds.batch_size, rounds.optimizer) == (3, 1e-4, 64, "sgd")
+    assert (rounds.model, rounds.labels, rounds.train_fraction) == (
+        sgd.pretrain_spec().model,
+        "tracks",
+        1.0,
+    )
+    large = PretrainSpec(case1, "centralized", preset="metric-sgd").model
+    learner = CentralizedLearner(replace(setup, state=build_model(large).state_dict()))
+    assert learner.settings.model == large and learner.settings.optimizer == "sgd"

@@ -2,6 +2,7 @@
 simulation engine beside the pooled and local references, results.json, mean +- std."""
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -40,3 +41,18 @@ def test_several_seeds_give_mean_and_std(tmp_path):
     assert block.final_test_mse_std == pytest.approx(np.std(finals))
     with pytest.raises(ValueError, match="--seeds"):
         OfflineConfig("case1", tmp_path, seeds=(3, 3))
+
+
+def test_resuming_reuses_a_finished_local_run(tmp_path):
+    # A finished `local` run (its checkpoint holds one model per drone) is found finished
+    # and reused by --resume, within the seed loop and when the results are gathered.
+    config = OfflineConfig("case1", tmp_path, rounds=2, seeds=(1,), duration=60.0, stride=5,
+                           methods=("local",), progress=False)  # fmt: skip
+    first = run_fl_offline(config).methods["local"]
+    checkpoint = next(tmp_path.rglob("local/checkpoint.npz"))
+    written = checkpoint.stat().st_mtime_ns
+
+    again = run_fl_offline(replace(config, resume=True)).methods["local"]
+
+    assert checkpoint.stat().st_mtime_ns == written  # nothing was trained again
+    assert again.seeds[0].final_test_mse == first.seeds[0].final_test_mse
