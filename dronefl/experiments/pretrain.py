@@ -28,7 +28,7 @@ import torch
 from dronefl.config import Scenario
 from dronefl.experiments.fl_offline import run_centralized
 from dronefl.experiments.simulate import simulate
-from dronefl.fl.checkpoint import load_checkpoint
+from dronefl.fl.checkpoint import load_checkpoint, load_history
 from dronefl.fl.records import PRESETS, FlSettings
 from dronefl.fl.simulation import run_federated
 from dronefl.models.model import PredictorConfig
@@ -131,12 +131,13 @@ def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
     """The pretrained model's prediction error per drone (MSE, m^2, one step ahead) on the
     held-out part of the crop-field recording: the chronologically last 1 - train_fraction
     (20 %) of each drone's windows, which pretraining never trains on. Read from the last
-    round of the run's history; raises ``ValueError`` when the model is not pretrained."""
+    round of the run's history (:class:`~dronefl.fl.checkpoint.CheckpointError` when it is
+    missing or short of ``rounds``; ``ValueError`` when no drone evaluated in that round)."""
     settings = spec.settings(folder)
-    checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
-    if not checkpoint.history or not checkpoint.history[-1].test_mse:
+    history = load_history(settings.history_path, settings.rounds)
+    if not history or not history[-1].test_mse:
         raise ValueError(f"{settings.history_path}: no evaluated round")
-    return dict(sorted(checkpoint.history[-1].test_mse.items()))
+    return dict(sorted(history[-1].test_mse.items()))
 
 
 def _settings_key(settings: FlSettings) -> dict:
