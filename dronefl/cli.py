@@ -20,6 +20,7 @@ from dronefl.config import (
     builtin_scenarios,
     load_scenario,
 )
+from dronefl.fl import TrainingError
 from dronefl.logs import LogError
 from dronefl.perception import DETECTORS
 
@@ -1057,11 +1058,15 @@ app.command("bench")(bench_command)
 
 
 def main() -> None:
-    """Entry point with bad-input errors turned into one line and exit code 2."""
+    """Entry point with bad-input errors turned into one line and exit code 2, and a failed
+    training run into one line and exit code 1."""
     try:
         app()
     except USER_ERRORS as exc:
         raise SystemExit(fail(str(exc)).exit_code) from None
+    except TrainingError as exc:  # a run that failed (logged above): one line, exit code 1
+        fail(str(exc))
+        raise SystemExit(1) from None
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ from flwr.app import Context
 from flwr.serverapp import Grid, ServerApp
 from flwr.simulation import run_simulation
 
+from dronefl.fl import TrainingError
 from dronefl.fl.checkpoint import CheckpointError, load_checkpoint
 from dronefl.fl.client_app import build_client_app
 from dronefl.fl.records import FlSettings
@@ -52,7 +53,11 @@ def run_federated(
     settings: FlSettings, on_round: RoundCallback | None = None, num_cpus: int = 2
 ) -> list[dict]:
     """Train ``settings.method`` for ``settings.rounds`` rounds on the simulation engine and
-    return the round history (also in ``settings.history_path``)."""
+    return the round history (also in ``settings.history_path``).
+
+    Raises :class:`TrainingError` if the run stopped early or if a round accepted no drone's update
+    (every reply failed or was left out): the rounds are in the history and the checkpoint,
+    but a model that missed a whole round is not the model the run was asked for."""
     config = settings.to_run_config()
     with _quiet_flower():
         run_simulation(
@@ -66,12 +71,19 @@ def run_federated(
             settings.checkpoint_path, settings.history_path, settings.method
         )
     except CheckpointError as exc:
-        raise RuntimeError(f"federated run of {settings.method} wrote no result: {exc}") from None
+        raise TrainingError(f"federated run of {settings.method} wrote no result: {exc}") from None
     if checkpoint.server_round < settings.rounds:
-        raise RuntimeError(
+        raise TrainingError(
             f"federated run of {settings.method} stopped after round {checkpoint.server_round} "
             f"of {settings.rounds}; see the log above (resume with --resume)"
         )
+    for entry in checkpoint.history:
+        if not entry.train_loss:
+            why = "; ".join(entry.rejected) or "no drone was asked"
+            raise TrainingError(
+                f"federated run of {settings.method}: round {entry.server_round} accepted no "
+                f"update, so the global model did not train ({why})"
+            )
     return checkpoint.history
 
 

@@ -8,6 +8,7 @@ import math
 
 import pytest
 
+from dronefl.fl import TrainingError
 from dronefl.fl.records import FlSettings
 from dronefl.fl.simulation import run_federated
 
@@ -53,3 +54,14 @@ def test_dronefl_round_survives_a_silent_drone_and_failed_evaluations(case1_run,
     assert _evaluated(history) == [[1, 2], [1, 2], [2], [1]]
     # The mean test MSE is over the drones that reported.
     assert history[3].mean_test_mse == history[3].test_mse[1]
+
+
+@pytest.mark.slow
+def test_a_round_without_any_accepted_update_fails_the_run(case1_run, tmp_path):
+    # Both drones crash in round 2: the rounds finish, but the model missed a whole round.
+    settings = FlSettings(str(case1_run), str(tmp_path), method="dronefl", rounds=3, epochs=1,
+                          stride=5, faults="2:1:raise,2:2:raise")  # fmt: skip
+    with pytest.raises(TrainingError, match="round 2 accepted no update") as failure:
+        run_federated(settings)
+    assert "drone 1: error (drone 1: injected fault in round 2)" in str(failure.value)
+    assert "drone 2: error (drone 2: injected fault in round 2)" in str(failure.value)
