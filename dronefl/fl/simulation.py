@@ -24,7 +24,7 @@ from flwr.simulation import run_simulation
 from dronefl.fl import TrainingError
 from dronefl.fl.checkpoint import CheckpointError, load_checkpoint
 from dronefl.fl.client_app import build_client_app
-from dronefl.fl.records import FlSettings
+from dronefl.fl.records import FlSettings, RoundRecord
 from dronefl.fl.server_app import RoundCallback, RoundDriver, build_server_app, num_drones
 
 T = TypeVar("T")
@@ -51,7 +51,7 @@ def backend_config(num_cpus: int = 2) -> dict:
 
 def run_federated(
     settings: FlSettings, on_round: RoundCallback | None = None, num_cpus: int = 2
-) -> list[dict]:
+) -> list[RoundRecord]:
     """Train ``settings.method`` for ``settings.rounds`` rounds on the simulation engine and
     return the round history (also in ``settings.history_path``).
 
