@@ -22,7 +22,7 @@ demo: install
 	$(BIN)/dronefl demo --out runs/demo
 
 test: install lint
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n auto --dist loadfile --no-loadscope-reorder
 
 lint: install
 	$(BIN)/ruff check dronefl tests benchmarks examples

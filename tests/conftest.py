@@ -25,6 +25,14 @@ os.environ.setdefault("YOLO_CONFIG_DIR", os.path.join(_CACHE, "ultralytics"))
 os.environ.setdefault("RAY_DEDUP_LOGS", "0")
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Files with a ``slow`` test run first (in collection order, then the rest): with
+    ``make test``'s ``-n auto --dist loadfile --no-loadscope-reorder`` their process start-ups
+    and Ray's teardown waits overlap the many quick tests instead of ending the run."""
+    slow = {item.path for item in items if item.get_closest_marker("slow")}
+    items.sort(key=lambda item: item.path not in slow)
+
+
 @pytest.fixture(scope="session")
 def quick_pretrained(tmp_path_factory):
     """A DroneFL model for Case 1 trained for ~6 s on 120 s of crop field (held-out error
@@ -97,37 +105,65 @@ def _running(process: psutil.Process) -> bool:
         return False
 
 
+#: Seconds a killed run's processes get to exit by themselves, counted from the end of the
+#: test that started them.
+ORPHAN_GRACE = 150.0
+
+
+@pytest.fixture(scope="session")
+def _orphans():
+    """Processes that ``cli_process`` runs left behind, with the test that started them and
+    the time by which they must be gone; checked when the session (or xdist worker) ends, so
+    that the wait overlaps the tests that come after."""
+    watched: list[tuple[str, float, list[psutil.Process]]] = []
+    yield watched
+    left = []
+    for test, deadline, processes in watched:
+        while (alive := [p for p in processes if _running(p)]) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        for p in alive:  # clean up before failing
+            with contextlib.suppress(psutil.Error):
+                left.append(f"{p.name()} (pid {p.pid}, started by {test})")
+                p.kill()
+    assert not left, f"left running {ORPHAN_GRACE:.0f} s after their test: {left}"
+
+
 @pytest.fixture
-def cli_process():
+def cli_process(request, _orphans):
     """``cli_process(argv, crash_at=None)`` runs ``dronefl ARGV`` in a child process, with
     ``DRONEFL_CRASH_AT=crash_at`` when given (:mod:`dronefl.io`), and returns its exit code (0,
-    or ``-SIGKILL`` for a run that killed itself). At the end every process the runs started
-    (Ray's included) must have exited by itself.
+    or ``-SIGKILL`` for a run that killed itself). Every process the runs started (Ray's
+    included) must exit by itself within :data:`ORPHAN_GRACE` s of the test's end.
 
     After a SIGKILL, Ray's raylet, GCS and workers go within seconds; its dashboard and
-    runtime-env agents first try to tell the dead GCS (a 60 s RPC timeout in Ray 2.55), so the
-    check waits up to 150 s after the last run, while the other runs of the test go on."""
+    runtime-env agents first try to tell the dead GCS (a 60 s RPC timeout in Ray 2.55). So
+    the test itself only waits for the processes of its last run, which was not killed;
+    the ones still winding down are checked at the end of the session (``_orphans``)."""
     seen: dict[int, psutil.Process] = {}
 
     def run(argv: list[str], crash_at: str | None = None) -> int:
         _adopt_orphans()
         child = _SERVER.Process(target=run_dronefl, args=(argv, crash_at))
         child.start()
+        mine: dict[int, psutil.Process] = {}
         while child.exitcode is None:
             try:
                 for p in psutil.Process(child.pid).children(recursive=True):
-                    seen.setdefault(p.pid, p)
+                    mine.setdefault(p.pid, p)
             except psutil.NoSuchProcess:
                 pass
             time.sleep(0.2)
         child.join()
         assert child.exitcode in (0, -signal.SIGKILL), f"{argv[0]} exited {child.exitcode}"
+        if child.exitcode == 0:  # a run that ended normally leaves nothing behind
+            deadline = time.monotonic() + 30
+            while (alive := [p for p in mine.values() if _running(p)]) and (
+                time.monotonic() < deadline
+            ):
+                time.sleep(0.2)
+            assert not alive, f"left running by {argv[0]}: {[p.name() for p in alive]}"
+        seen.update(mine)
         return child.exitcode
 
     yield run
-    deadline = time.monotonic() + 150
-    while (alive := [p for p in seen.values() if _running(p)]) and time.monotonic() < deadline:
-        time.sleep(0.5)
-    for p in alive:  # clean up before failing
-        p.kill()
-    assert not alive, f"left running: {[p.name() for p in alive]}"
+    _orphans.append((request.node.nodeid, time.monotonic() + ORPHAN_GRACE, list(seen.values())))

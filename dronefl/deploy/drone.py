@@ -195,7 +195,8 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
 def _start_supernode(settings: DroneSettings, children: Children) -> Child:
     """Start the SuperNode and wait until the SuperLink has admitted it (it logs its node
     id). One that exits first (say, it connected before the cloud registered its key) is
-    started again until ``start_timeout``; then the SuperLink's refusal is the error."""
+    started again after 1, 2, 4, 8, 8, ... s while that still falls within ``start_timeout``;
+    then the SuperLink's refusal is the error."""
     certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
     command = supernode_command(settings, certs)
     env = flower_env(Path(settings.data_dir) / "flwr")
@@ -203,6 +204,7 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
     deadline = time.monotonic() + settings.start_timeout
     name = f"supernode-{settings.drone_id}"
     refused = None  # why the SuperLink turned the last attempt away
+    pause = 1.0  # s before the next attempt, doubled up to 8 s
     while True:
         supernode = children.start(name, command, env)
         while supernode.process.poll() is None and not supernode_id(supernode):
@@ -219,14 +221,17 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
         if supernode.process.poll() is None:
             return supernode
         refused = _refusal(supernode.output())
-        if time.monotonic() > deadline:
+        if time.monotonic() + pause > deadline:  # the next attempt would start too late
             raise DeployError(
                 f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
             )
         print(
-            f"drone {settings.drone_id}: SuperNode not admitted ({refused}); retrying", flush=True
+            f"drone {settings.drone_id}: SuperNode not admitted ({refused}); retrying in "
+            f"{pause:.0f} s",
+            flush=True,
         )
-        time.sleep(1.0)
+        time.sleep(pause)
+        pause = min(2 * pause, 8.0)
 
 
 def _refusal(output: str) -> str:

@@ -38,6 +38,7 @@ def _wait_for_line(path, text: str, launcher: subprocess.Popen, seconds: float) 
 
 
 @pytest.mark.timeout(600)
+@pytest.mark.slow
 def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, quick_pretrained):
     out = tmp_path / "deploy"
     command = cli(
@@ -95,6 +96,7 @@ def test_killed_drone_is_silent_misses_a_round_and_rejoins(tmp_path, run_env, qu
 
 
 @pytest.mark.timeout(300)
+@pytest.mark.slow
 def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
     certs = make_certificates(tmp_path / "certs", [1, 2])
     # Drone 2 of the intruder's copy has a key pair the cloud never registered.
@@ -121,7 +123,7 @@ def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
         drone = subprocess.run(
             cli("drone", "--id", "2", "--model", str(model), "--tls-dir", str(intruder),
                 "--superlink", f"127.0.0.1:{base + 2}", "--runtime-port", str(base + 12),
-                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "40",
+                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "25",
                 "--data-dir", str(tmp_path / "disk")),
             env=run_env, capture_output=True, text=True, timeout=200,
         )  # fmt: skip

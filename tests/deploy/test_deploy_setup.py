@@ -80,6 +80,7 @@ def test_unreachable_superlink(tmp_path, run_env, model_file):
     assert survivors(run_env[MARK]) == []
 
 
+@pytest.mark.slow
 def test_certificate_of_another_ca_never_reaches_the_world(tmp_path, run_env, model_file):
     """The world listens with our CA's certificate; a drone presenting another CA's is not
     let in, and says so after its start timeout."""

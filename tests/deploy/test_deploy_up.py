@@ -16,6 +16,7 @@ from dronefl.logs import PseudoLabels
 
 
 @pytest.mark.timeout(400)
+@pytest.mark.slow
 def test_deploy_up_plays_a_round_through_the_superlink_and_leaves_nothing(
     tmp_path, run_env, quick_pretrained
 ):

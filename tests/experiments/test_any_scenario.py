@@ -19,9 +19,9 @@ from dronefl.experiments.track import TRACK_METHODS, TrackConfig
 
 SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
 #: Short settings: 30 s of crop field and 2 FL rounds to pretrain, 24 s episodes with an FL
-#: round every 10 s.
+#: round (of one local epoch) every 10 s.
 SHORT = ["--pretrain-rounds", "2", "--pretrain-seconds", "30", "--duration", "24",
-         "--fl-period", "10"]  # fmt: skip
+         "--fl-period", "10", "--epochs", "1"]  # fmt: skip
 
 
 def _invoke(*args: str) -> str:
@@ -40,6 +40,7 @@ def test_simulate_records_every_drone_of_the_custom_scenario(tmp_path):
     assert summary["sim_seconds"] == pytest.approx(10.0)
 
 
+@pytest.mark.slow
 def test_offline_fl_trains_every_drone_of_the_custom_scenario(tmp_path):
     _invoke("fl-offline", "--scenario", str(SCENARIO), "--seeds", "0", "--rounds", "2",
             "--methods", "dronefl,fedavg", "--duration", "40", "--stride", "5",
@@ -68,6 +69,7 @@ def table_dir(tmp_path_factory):
 
 
 @pytest.mark.parametrize("method", TRACK_METHODS)
+@pytest.mark.slow
 def test_every_method_flies_the_custom_scenario(table_dir, method):
     metrics = EpisodeMetrics.load(
         table_dir / "table" / "farm_5x8" / method / "seed0" / "metrics.json"
@@ -94,7 +96,7 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     out = table_dir / "table"
     before = {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")}
     base = TrackConfig(
-        scenario=load_scenario(SCENARIO), out=out, duration=24.0, fl_period=10.0,
+        scenario=load_scenario(SCENARIO), out=out, duration=24.0, fl_period=10.0, epochs=1,
         pretrained=table_dir / "pretrained", pretrain_rounds=2, pretrain_seconds=30.0,
     )  # fmt: skip
 

@@ -74,6 +74,7 @@ def _processes_tagged(tag: str) -> list[int]:
     return found
 
 
+@pytest.mark.slow
 def test_a_client_app_failing_in_pretraining_ends_the_command(tmp_path):
     # Prepare: the crop-field recording pretraining would make, with every drone's log corrupt,
     # so that each ClientApp raises inside the Flower simulation.

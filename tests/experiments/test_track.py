@@ -81,6 +81,7 @@ def test_pseudo_labels_round_trip_and_alignment(tmp_path):
         shifted.for_log(record.to_log())
 
 
+@pytest.mark.slow
 def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, tmp_path):
     config = TrackConfig(
         scenario=load_scenario("case1"),
@@ -120,6 +121,14 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
         with Image.open(tmp_path / name) as image:
             image.load()  # the whole image decodes
             assert image.format == "PNG" and min(image.size) > 300
+    # The animation: 100 frames at 10 frames/s, and the vehicles move between the first and
+    # the last.
+    with Image.open(tmp_path / "episode.gif") as gif:
+        assert gif.format == "GIF" and gif.n_frames == 100 and gif.info["duration"] == 100
+        first = np.asarray(gif.convert("RGB"))
+        gif.seek(gif.n_frames - 1)
+        last = np.asarray(gif.convert("RGB"))
+    assert first.shape == last.shape and (first != last).any(axis=-1).sum() > 50
     again = run_episode(config)
     assert again.tracking == metrics.tracking
 
@@ -153,6 +162,7 @@ def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, 
     assert metrics.tracking.prediction_coverage > 0.0
 
 
+@pytest.mark.slow
 def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained, tmp_path):
     # Case 2's quick model: the Case 1 one (the model is the same for any scenario).
     pretrained = tmp_path / "pretrained"

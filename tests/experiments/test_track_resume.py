@@ -14,6 +14,7 @@ import signal
 from pathlib import Path
 
 import numpy as np
+import pytest
 from cli_child import run_cli
 
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
@@ -81,6 +82,7 @@ def assert_identical(a: tuple, b: tuple) -> None:
     assert all(abs(x - y) <= MESSAGE_SLACK for x, y in zip(a[4], b[4], strict=True))
 
 
+@pytest.mark.slow
 def test_episode_killed_mid_round_and_mid_checkpoint_resumes_bit_identical(
     tmp_path, quick_pretrained, cli_process, capsys
 ):
