@@ -1,19 +1,22 @@
-"""Test-wide settings (headless plotting, tool caches inside a temp dir, no telemetry), the
-shared fixture of a quickly pretrained Case 1 model, and ``cli_process``, which runs the
-``dronefl`` command in child processes and checks that every process they started is gone at
-the end (the kill/resume tests)."""
+"""Test-wide settings (headless plotting, tool caches inside a temp dir, no telemetry, one Ray
+worker per simulation engine), the shared fixture of a quickly pretrained Case 1 model, and
+``cli_process``, which runs the ``dronefl`` command in child processes and checks that every
+process they started is gone at the end (the kill/resume tests)."""
 
 import contextlib
 import ctypes
 import multiprocessing
 import os
+import shutil
 import signal
 import tempfile
 import time
+from pathlib import Path
 
 import psutil
 import pytest
 from cli_child import run_dronefl
+from filelock import FileLock
 
 _CACHE = tempfile.mkdtemp(prefix="dronefl-test-cache-")
 os.environ.setdefault("MPLBACKEND", "Agg")
@@ -23,6 +26,9 @@ os.environ.setdefault("FLWR_TELEMETRY_ENABLED", "0")
 os.environ.setdefault("YOLO_OFFLINE", "1")
 os.environ.setdefault("YOLO_CONFIG_DIR", os.path.join(_CACHE, "ultralytics"))
 os.environ.setdefault("RAY_DEDUP_LOGS", "0")
+# One Ray worker per simulation engine: the tests already run in parallel (make test: -n auto),
+# and a second worker costs ~5 CPU-s per engine start (see dronefl.fl.simulation.sim_workers).
+os.environ.setdefault("DRONEFL_SIM_WORKERS", "1")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
@@ -37,7 +43,21 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 def quick_pretrained(tmp_path_factory):
     """A DroneFL model for Case 1 trained for ~6 s on 120 s of crop field (held-out error
     ~2.5 m^2, good enough for the closed loop to keep its targets in view), cached where the
-    closed loop and ``deploy up --pretrained`` look for pretrained weights."""
+    closed loop and ``deploy up --pretrained`` look for pretrained weights. Built once per
+    run: the first pytest-xdist worker to ask builds it, under a file lock in the folder the
+    workers share; the others wait for it and reuse it (it is only read)."""
+    base = tmp_path_factory.getbasetemp()
+    if "PYTEST_XDIST_WORKER" in os.environ:
+        base = base.parent
+    folder = base / "quick-pretrained"
+    with FileLock(f"{folder}.lock"):
+        if not (folder / "ready").is_file():
+            _train_quick_model(folder)
+            (folder / "ready").touch()
+    return folder
+
+
+def _train_quick_model(folder: Path) -> None:
     import torch
 
     from dronefl.config import load_scenario
@@ -49,7 +69,8 @@ def quick_pretrained(tmp_path_factory):
     from dronefl.models.train import TrainConfig, train_local
     from dronefl.models.windows import WindowSet, WindowSpec, build_windows, ground_truth_labels
 
-    folder = tmp_path_factory.mktemp("pretrained")
+    if folder.exists():  # a run that died while building it
+        shutil.rmtree(folder)
     data = folder / "data"
     simulate(
         load_scenario("case1"),
@@ -74,7 +95,6 @@ def quick_pretrained(tmp_path_factory):
         settings.history_path,
         Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
     )
-    return folder
 
 
 PR_SET_CHILD_SUBREAPER = 36

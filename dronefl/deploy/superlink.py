@@ -21,9 +21,9 @@ from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.cloud import CloudSettings
 from dronefl.deploy.flower import (
     CONNECTION,
-    app_dir,
     executable,
     flower_env,
+    stage_app,
     superlink_command,
     write_connection,
 )
@@ -73,7 +73,8 @@ def run_cloud(cloud: CloudSettings, fl: FlSettings, link: SuperLinkSettings, log
                 _register(certs.supernode_public_key(drone_id), env, link.start_timeout)
         run_config = out / "run_config.toml"
         run_config.write_text(tomli_w.dumps({**fl.to_run_config(), **cloud.to_run_config()}))
-        command = [executable("flwr"), "run", str(app_dir()), CONNECTION, "--stream"]
+        app = stage_app(out / "app")
+        command = [executable("flwr"), "run", str(app), CONNECTION, "--stream"]
         flwr_run = children.start("flwr-run", [*command, "--run-config", str(run_config)], env)
         print(f"cloud: SuperLink on {link.host}:{link.port}, ServerApp launched", flush=True)
         while flwr_run.process.poll() is None:

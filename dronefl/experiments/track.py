@@ -491,10 +491,21 @@ def _fly(
     saved: LoopCheckpoint | None,
 ) -> EpisodeMetrics:
     """Fly the episode (from the ``saved`` checkpoint's step, when given), checkpointing after
-    every FL period and at the end, and write its results."""
+    every FL period and at the end, and write its results; the detector is closed at the end,
+    whatever happened."""
     # One thread: the tiny per-step models are dominated by thread hand-offs otherwise.
     torch.set_num_threads(1)
     loop = ClosedLoop(config, learner, state, parts, saved)
+    try:
+        return _fly_loop(config, loop, saved)
+    finally:
+        loop.detector.close()
+
+
+def _fly_loop(
+    config: TrackConfig, loop: ClosedLoop, saved: LoopCheckpoint | None
+) -> EpisodeMetrics:
+    """The steps of :func:`_fly` from the checkpoint's on, then its checkpoint and results."""
     out = Path(config.out)
     first, wall_before = (saved.step, saved.wall_seconds) if saved else (0, 0.0)
     name = f"track {config.scenario.name} {config.method} seed {config.seed}"

@@ -34,14 +34,29 @@ T = TypeVar("T")
 os.environ.setdefault("RAY_worker_niceness", "0")
 
 
-#: Ray resources: two workers, one CPU each (the two drones' trainings run side by side),
-#: a small object store, no dashboard. Sized for a 2-core, 24 GiB machine.
-def backend_config(num_cpus: int = 2) -> dict:
-    """Backend configuration for ``run_simulation``: ``num_cpus`` Ray workers of 1 CPU."""
+#: Environment variable: how many Ray workers (one CPU each) the simulation engine starts.
+WORKERS_ENV = "DRONEFL_SIM_WORKERS"
+
+
+def sim_workers() -> int:
+    """Ray workers of the simulation engine: ``$DRONEFL_SIM_WORKERS``, else 2 (two drones'
+    trainings side by side on a 2-core machine). Each worker imports torch and the ClientApp
+    (about 2.5 CPU-s) at every engine start; the test suite, which runs tests in parallel,
+    sets 1. The results do not depend on it: each drone's training is seeded by its node."""
+    value = os.environ.get(WORKERS_ENV, "2")
+    if not value.isdigit() or int(value) < 1:
+        raise ValueError(f"{WORKERS_ENV}: must be a whole number >= 1, got {value!r}")
+    return int(value)
+
+
+#: Ray resources: ``num_cpus`` workers of one CPU each, a small object store, no dashboard.
+def backend_config(num_cpus: int | None = None) -> dict:
+    """Backend configuration for ``run_simulation``: ``num_cpus`` Ray workers of 1 CPU
+    (default :func:`sim_workers`)."""
     return {
         "client_resources": {"num_cpus": 1, "num_gpus": 0.0},
         "init_args": {
-            "num_cpus": num_cpus,
+            "num_cpus": num_cpus or sim_workers(),
             "num_gpus": 0,
             "include_dashboard": False,
             "object_store_memory": 100 * 1024 * 1024,
@@ -50,7 +65,7 @@ def backend_config(num_cpus: int = 2) -> dict:
 
 
 def run_federated(
-    settings: FlSettings, on_round: RoundCallback | None = None, num_cpus: int = 2
+    settings: FlSettings, on_round: RoundCallback | None = None, num_cpus: int | None = None
 ) -> list[RoundRecord]:
     """Train ``settings.method`` for ``settings.rounds`` rounds on the simulation engine and
     return the round history (also in ``settings.history_path``).
@@ -88,7 +103,10 @@ def run_federated(
 
 
 def run_session(
-    settings: FlSettings, n_drones: int, body: Callable[[RoundDriver], T], num_cpus: int = 2
+    settings: FlSettings,
+    n_drones: int,
+    body: Callable[[RoundDriver], T],
+    num_cpus: int | None = None,
 ) -> T:
     """Start the simulation engine with ``n_drones`` SuperNodes, run ``body(driver)`` as the
     ServerApp and return its result; ``driver.play(state, round, run_dir=...)`` plays a round

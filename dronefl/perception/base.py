@@ -34,3 +34,8 @@ class Detector(ABC):
         """Continue from ``state``, a :meth:`state` of a detector built the same way."""
         if state is not None:
             raise ValueError(f"{type(self).__name__} carries no state to restore, got {state!r}")
+
+    def close(self) -> None:  # noqa: B027 - a hook: most detectors hold nothing to free
+        """Free what the detector holds outside Python (a renderer's OpenGL context); the
+        episode calls it when it ends. Left to the garbage collector, an EGL context is freed
+        from whichever thread collects it, which EGL refuses (``EGL_BAD_ACCESS``)."""

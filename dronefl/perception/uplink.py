@@ -125,6 +125,11 @@ class CloudVisionDetector(Detector):
         """Continue counting from ``state`` (:meth:`Detector.restore`)."""
         self.bytes_sent = dict(state)
 
+    def close(self) -> None:
+        """Free the renderer's OpenGL context."""
+        self.renderer.close()
+        self.yolo.close()
+
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """The cloud's detections in drone ``view.drone_id``'s JPEG-coded frame of ``view``."""
         image = view.image if view.image is not None else self.renderer.render_view(view)

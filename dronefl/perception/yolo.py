@@ -165,6 +165,12 @@ class YoloDetector(Detector):
             (weights or shipped_detector_path()).with_name(DETECTOR_SIDECAR)
         )
 
+    def close(self) -> None:
+        """Free the renderer's OpenGL context, if the detector has a renderer."""
+        if self.renderer is not None:
+            self.renderer.close()
+            self.renderer = None
+
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """Detections in ``view.image`` (rendered first if the view carries none)."""
         image = view.image

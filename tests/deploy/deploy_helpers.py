@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import random
 import socket
 import sys
 from pathlib import Path
@@ -14,17 +16,25 @@ ROOT = Path(__file__).resolve().parents[2]
 MARK = "DRONEFL_TEST_MARK"
 
 
+#: Where test deployments take their ports: above Ray's worker ports (10002-19999) and below
+#: Linux's ephemeral range (from 32768), where any process's outgoing connection may take a
+#: port between the check here and the deployment's bind (seen with tests run in parallel).
+PORT_RANGE = (20000, 32760)
+
+
 def free_port_block(size: int = 20) -> int:
-    """A base port with ``size`` free ports above it (on 127.0.0.1)."""
+    """A base port with ``size`` free ports above it (on 127.0.0.1), in this test worker's own
+    stripe of :data:`PORT_RANGE` (pytest-xdist runs tests in parallel workers ``gw0``,
+    ``gw1``, ...), so that two tests running at once never share a port."""
+    worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").removeprefix("gw") or 0)
+    workers = max(int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")), worker + 1)
+    width = (PORT_RANGE[1] - PORT_RANGE[0]) // workers
+    low = PORT_RANGE[0] + worker * width
     for _ in range(200):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            base = s.getsockname()[1]
-        if base + size > 65000:
-            continue
+        base = random.randrange(low, low + width - size)
         if all(_free(base + k) for k in range(size)):
             return base
-    raise RuntimeError("no block of free ports")
+    raise RuntimeError(f"no block of {size} free ports in {low}-{low + width}")
 
 
 def _free(port: int) -> bool:

@@ -1,10 +1,15 @@
 """The Flower app's declared run config holds every key the apps send (``flwr run -c`` refuses
-an unknown key with "Invalid run configuration")."""
+an unknown key with "Invalid run configuration"); the staged copy of the app that ``flwr run``
+builds its FAB from holds every file the app needs."""
 
 import tomllib
 from pathlib import Path
 
+from flwr.cli.build import get_filtered_fab_paths
+from flwr.cli.utils import collect_files
+
 from dronefl.deploy.cloud import CloudSettings
+from dronefl.deploy.flower import stage_app
 from dronefl.fl.records import FlSettings
 
 
@@ -14,3 +19,21 @@ def test_every_fl_setting_is_declared_in_the_app_config():
     sent = set(FlSettings(run_dir="a", out_dir="b").to_run_config())
     sent |= set(CloudSettings(scenario="case1", model="m", out="o").to_run_config())
     assert sent - declared == set()
+
+
+def test_the_staged_app_is_the_package_and_its_scenarios(tmp_path):
+    root = Path(__file__).parents[2]
+    (tmp_path / "app").mkdir()
+    (tmp_path / "app" / "stale.py").write_text("")  # a previous run's copy is replaced
+    staged = stage_app(tmp_path / "app")
+    config = tomllib.loads((staged / "pyproject.toml").read_text())
+    fab = set(get_filtered_fab_paths(collect_files(staged), config))
+    package = {p.relative_to(root).as_posix() for p in (root / "dronefl").rglob("*.py")}
+    scenarios = {
+        p.relative_to(root).as_posix() for p in (root / "dronefl" / "scenarios").glob("*.yaml")
+    }
+    assert package and scenarios
+    assert fab == package | scenarios  # pyproject.toml is added to every FAB apart
+    assert (staged / "dronefl/deploy/cloud.py").read_bytes() == (
+        root / "dronefl/deploy/cloud.py"
+    ).read_bytes()

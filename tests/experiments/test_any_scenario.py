@@ -19,9 +19,9 @@ from dronefl.experiments.track import TRACK_METHODS, TrackConfig
 
 SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
 #: Short settings: 30 s of crop field and 2 FL rounds to pretrain, 24 s episodes with an FL
-#: round (of one local epoch) every 10 s.
+#: round (of one local epoch) every 10 s, no GIF.
 SHORT = ["--pretrain-rounds", "2", "--pretrain-seconds", "30", "--duration", "24",
-         "--fl-period", "10", "--epochs", "1"]  # fmt: skip
+         "--fl-period", "10", "--epochs", "1", "--no-animate"]  # fmt: skip
 
 
 def _invoke(*args: str) -> str:

@@ -2,6 +2,7 @@
 
 import json
 import pickle
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -13,7 +14,7 @@ from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.experiments.track import TrackConfig, run_episode
+from dronefl.experiments.track import LoopParts, TrackConfig, run_episode
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.learners import LearnerSetup
 from dronefl.learners.centralized import CentralizedLearner
@@ -21,6 +22,7 @@ from dronefl.learners.federated import session_settings
 from dronefl.logs import LogError, PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 from dronefl.models.online import OnboardRecord
+from dronefl.perception import make_detector
 from dronefl.types import Detection, Odometry
 
 
@@ -134,19 +136,20 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
 
 
 def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, tmp_path):
-    # Prepare: an (untrained) large cloud model in the cache; accuracy is not under test.
-    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(quick_pretrained)
-    if not settings.checkpoint_path.is_file():
-        model = build_model(predictor_config("large", 10, 1), seed=0)
-        save_checkpoint(
-            settings.checkpoint_path,
-            settings.history_path,
-            Checkpoint("centralized", settings.rounds, model.state_dict(), []),
-        )
+    # Prepare: an (untrained) large cloud model in a copy of the cache (the shared one is only
+    # read); accuracy is not under test.
+    pretrained = shutil.copytree(quick_pretrained, tmp_path / "pretrained")
+    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(pretrained)
+    model = build_model(predictor_config("large", 10, 1), seed=0)
+    save_checkpoint(
+        settings.checkpoint_path,
+        settings.history_path,
+        Checkpoint("centralized", settings.rounds, model.state_dict(), []),
+    )
     config = TrackConfig(
         scenario=load_scenario("case1"), method="centralized", detector="yolo", seed=0,
-        duration=2.0, environment="crop_field", runtime="torch", pretrained=quick_pretrained,
-        out=tmp_path, progress=False, animate=False,
+        duration=2.0, environment="crop_field", runtime="torch", pretrained=pretrained,
+        out=tmp_path / "episode", progress=False, animate=False,
     )  # fmt: skip
     # Execute: 10 steps, every drone's frame rendered, JPEG-encoded, decoded and detected.
     metrics = run_episode(config)
@@ -160,6 +163,24 @@ def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, 
         assert comm.kb_per_s(drone, "down", "control") == pytest.approx(14 * 5 / 1000)
     assert ("up", "predictions") not in comm.kinds()
     assert metrics.tracking.prediction_coverage > 0.0
+
+
+def test_the_episode_frees_its_renderer_at_the_end(quick_pretrained, tmp_path):
+    built = []
+
+    def detector(name, world):
+        built.append(make_detector(name, world))
+        return built[-1]
+
+    config = TrackConfig(
+        scenario=load_scenario("case1"), method="fixed", detector="yolo", duration=3.0,
+        environment="crop_field", pretrained=quick_pretrained, out=tmp_path,
+        progress=False, animate=False,
+    )  # fmt: skip
+    run_episode(config, LoopParts(detector=detector))
+    # Closed by the episode, in its own thread (EGL refuses a context freed from another one).
+    (yolo,) = built
+    assert yolo.renderer is None
 
 
 @pytest.mark.slow

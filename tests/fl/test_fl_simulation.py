@@ -7,7 +7,7 @@ from dataclasses import replace
 import pytest
 
 from dronefl.fl.records import FlSettings
-from dronefl.fl.simulation import run_federated
+from dronefl.fl.simulation import WORKERS_ENV, backend_config, run_federated
 
 
 @pytest.mark.slow
@@ -34,3 +34,18 @@ def test_two_drones_two_rounds_with_resume(case1_run, tmp_path):
         "drone_1.npz",
         "drone_2.npz",
     ]
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "two", ""])
+def test_a_bad_worker_count_is_named(monkeypatch, value):
+    monkeypatch.setenv(WORKERS_ENV, value)
+    with pytest.raises(ValueError, match=f"{WORKERS_ENV}: must be a whole number >= 1"):
+        backend_config()
+
+
+def test_the_worker_count_sizes_ray(monkeypatch):
+    monkeypatch.setenv(WORKERS_ENV, "3")
+    assert backend_config()["init_args"]["num_cpus"] == 3
+    assert backend_config(2)["init_args"]["num_cpus"] == 2
+    monkeypatch.delenv(WORKERS_ENV)
+    assert backend_config()["init_args"]["num_cpus"] == 2
