@@ -4,8 +4,8 @@ FL round history and the final global weights. The process kills itself (``DRONE
 see :mod:`dronefl.io`), so each kill lands at the same place every time; every process it
 started (Ray's included) is gone afterwards.
 
-The episode: DroneFL on Case 1, 30 s = 150 steps, an FL round after steps 50 and 100, a
-checkpoint after steps 50, 100 and 150.
+The episode: DroneFL on Case 1, 21 s = 105 steps, an FL round after steps 35 and 70, a
+checkpoint after steps 35, 70 and 105.
 """
 
 import json
@@ -19,7 +19,9 @@ from cli_child import run_cli
 
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 
-TRACK = ["track", "--scenario", "case1", "--duration", "30", "--fl-period", "10", "--no-animate"]
+DURATION = 21.0
+TRACK = ["track", "--scenario", "case1", "--duration", str(DURATION), "--fl-period", "7",
+         "--no-animate"]  # fmt: skip
 #: metrics.json fields that are wall-clock times (each FL round's ``seconds`` too).
 WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
 #: How much a round's message may differ in size from the uninterrupted run's, B: the engine
@@ -52,7 +54,7 @@ def outcome(out: Path) -> tuple[dict, dict, list, dict, list[int]]:
         sizes += [*entry.pop("weight_bytes_down").values(), *entry.pop("weight_bytes_up").values()]
     rates = metrics["communication"].pop("rates")
     metrics["communication"] = [r for r in rates if r["kind"] != "weights"]
-    sizes += [round(1000 * r["kb_per_s"] * 30) for r in rates if r["kind"] == "weights"]
+    sizes += [round(1000 * r["kb_per_s"] * DURATION) for r in rates if r["kind"] == "weights"]
     config = metrics.pop("config")
     metrics["config"] = {k: v for k, v in config.items() if k != "out"}
     with np.load(out / "episode.npz") as npz:
@@ -87,17 +89,17 @@ def test_episode_killed_mid_round_and_mid_checkpoint_resumes_bit_identical(
     tmp_path, quick_pretrained, cli_process, capsys
 ):
     out = tmp_path / "killed"
-    # Killed mid-round: round 2 trained, not recorded; step 50's checkpoint (after round 1)
+    # Killed mid-round: round 2 trained, not recorded; step 35's checkpoint (after round 1)
     # survives.
     assert track(cli_process, out, quick_pretrained, crash_at="round-end:2") == -signal.SIGKILL
-    assert checkpoint_step(out) == 50 and not (out / "metrics.json").exists()
+    assert checkpoint_step(out) == 35 and not (out / "metrics.json").exists()
     # Resumed (round 2 played again in a new Flower session) and killed mid-write of the last
-    # checkpoint: step 100's is still whole.
+    # checkpoint: step 70's is still whole.
     kill = f"write:{CHECKPOINT_NAME}@2"
     assert track(cli_process, out, quick_pretrained, "--resume", crash_at=kill) == -signal.SIGKILL
-    assert checkpoint_step(out) == 100 and not (out / "metrics.json").exists()
+    assert checkpoint_step(out) == 70 and not (out / "metrics.json").exists()
     assert track(cli_process, out, quick_pretrained, "--resume") == 0
-    assert checkpoint_step(out) == 150
+    assert checkpoint_step(out) == 105
     # The uninterrupted episode (run last, while the killed runs' Ray agents wind down).
     assert track(cli_process, tmp_path / "reference", quick_pretrained) == 0
     reference = outcome(tmp_path / "reference")
@@ -113,7 +115,7 @@ def test_episode_killed_mid_round_and_mid_checkpoint_resumes_bit_identical(
     # before any work.
     argv = [*TRACK, "--pretrained", str(quick_pretrained), "--out", str(out), "--resume"]
     code, err = run_cli(capsys, *argv, "--fl-period", "15")
-    assert code == 2 and "metrics.json" in err and "fl_period is 10.0 there, 15.0 here" in err
+    assert code == 2 and "metrics.json" in err and "fl_period is 7.0 there, 15.0 here" in err
     (out / "metrics.json").unlink()
     code, err = run_cli(capsys, *argv, "--seed", "1")
     assert code == 2 and CHECKPOINT_NAME in err and "seed is 0 there, 1 here" in err
