@@ -46,8 +46,9 @@ WORKERS_ENV = "DRONEFL_SIM_WORKERS"
 def sim_workers() -> int:
     """Ray workers of the simulation engine: ``$DRONEFL_SIM_WORKERS``, else 2 (two drones'
     trainings side by side on a 2-core machine). Each worker imports torch and the ClientApp
-    (about 2.5 CPU-s) at every engine start; the test suite, which runs tests in parallel,
-    sets 1. The results do not depend on it: each drone's training is seeded by its node."""
+    at every engine start (measured: a second worker costs about 5 CPU-s per start); the test
+    suite, which runs tests in parallel, sets 1. The results do not depend on it: each drone's
+    training is seeded by its drone id and round."""
     value = os.environ.get(WORKERS_ENV, "2")
     if not value.isdigit() or int(value) < 1:
         raise ValueError(f"{WORKERS_ENV}: must be a whole number >= 1, got {value!r}")
