@@ -3,7 +3,8 @@
 It starts ``flower-superlink`` (a child), waits until it accepts connections, registers every
 drone's SuperNode key (with TLS: only registered SuperNodes may join), writes the run config
 and launches the ServerApp (:mod:`dronefl.deploy.cloud`) with ``flwr run`` against that
-SuperLink, streaming its log. It returns when the run has ended and stops the SuperLink.
+SuperLink (from a copy of just the app in ``OUT/app``, :func:`~dronefl.deploy.flower.stage_app`),
+streaming its log. It returns when the run has ended and stops the SuperLink.
 """
 
 from __future__ import annotations
