@@ -16,9 +16,11 @@ round:
 ``--pooled`` trains the same model on all drones' pooled training windows instead (the
 ``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, the
 local optimiser (``--optimizer adam|sgd``) and its lr, batch size, weighting, FedProx's mu on
-any model (``--proximal-mu``), AdaIN slopes kept at their start (``--freeze-style-slope``), a
-server optimiser (``--server-opt adam|yogi --server-lr``: Flower's FedAdam / FedYogi update,
-checked against Flower in ``tests/fl/test_fl_diagnose.py``), rounds and the hold-out:
+any model (``--proximal-mu``), SCAFFOLD's drift correction (``--scaffold exact|path``, the
+library's :func:`~dronefl.models.train.drift_correction`), AdaIN slopes kept at their start
+(``--freeze-style-slope``), a server optimiser (``--server-opt adam|yogi --server-lr``:
+Flower's FedAdam / FedYogi update, checked against Flower in ``tests/fl/test_fl_diagnose.py``),
+rounds and the hold-out:
 ``--validation`` trains on the first 80 % of each drone's training part and evaluates on the
 rest (never the test windows). Numbers claimed in the README are confirmed with
 ``dronefl fl-offline`` (the real Flower path).
@@ -37,7 +39,15 @@ from dronefl.fl.methods import METHODS
 from dronefl.fl.records import FlSettings
 from dronefl.logs import load_run
 from dronefl.models.model import BOX_SIZES, STYLE_INITS, build_model
-from dronefl.models.train import OPTIMIZERS, evaluate, proximal_term, train_local
+from dronefl.models.train import (
+    OPTIMIZERS,
+    drift_correction,
+    evaluate,
+    local_steps,
+    proximal_term,
+    train_local,
+    updated_control_variate,
+)
 from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels, split_windows
 
 
@@ -86,6 +96,37 @@ def server_step(
             v[k] = previous - (1 - b2) * sq * torch.sign(previous - sq)
         new[k] = current[k] + eta * m[k] / (v[k].sqrt() + tau)
     return new
+
+
+def full_gradient(model: torch.nn.Module, data: WindowSet, seed: int) -> dict[str, torch.Tensor]:
+    """The gradient of the mean MSE (m^2) over all of ``data`` at the model's current weights,
+    per trainable parameter, in training mode (dropout on, seeded by ``seed``) as the local
+    steps see it: SCAFFOLD's control variate c_i (Karimireddy et al., 2020, option I)."""
+    features, altitude, labels = (
+        torch.from_numpy(data.features),
+        torch.from_numpy(data.altitude),
+        torch.from_numpy(data.labels),
+    )
+    torch.manual_seed(seed)
+    model.train()
+    model.zero_grad(set_to_none=True)
+    for i in range(0, len(data), 1024):
+        prediction = model(features[i : i + 1024], altitude[i : i + 1024])
+        loss = (
+            torch.nn.functional.mse_loss(prediction, labels[i : i + 1024], reduction="sum")
+            / labels.numel()
+        )
+        loss.backward()
+    return {n: w.grad.detach().clone() for n, w in model.named_parameters() if w.grad is not None}
+
+
+def weighted_mean(
+    variates: dict[int, dict[str, torch.Tensor]], counts: dict[int, float]
+) -> dict[str, torch.Tensor]:
+    """The server's control variate c: the drones' c_i weighted as their models are."""
+    total = sum(counts[d] for d in variates)
+    first = next(iter(variates.values()))
+    return {k: sum(counts[d] * v[k] for d, v in variates.items()) / total for k in first}
 
 
 def flat(state: dict[str, torch.Tensor]) -> torch.Tensor:
@@ -141,6 +182,20 @@ def main() -> None:
     p.add_argument(
         "--proximal-mu", type=float, default=0.0, help="FedProx's mu on every drone (0: none)"
     )
+    p.add_argument(
+        "--scaffold",
+        choices=("none", "exact", "path"),
+        default="none",
+        help="SCAFFOLD's drift correction with control variates c_i: 'exact', the full "
+        "gradient at each round's global model (option I); 'path', the mean gradient of the "
+        "drone's previous local steps (option II)",
+    )
+    p.add_argument(
+        "--scaffold-from",
+        type=int,
+        default=1,
+        help="first round whose local steps are corrected (variates are kept from round 1)",
+    )
     p.add_argument("--pooled", action="store_true")
     p.add_argument("--local", action="store_true")
     p.add_argument("--validation", action="store_true")
@@ -155,6 +210,8 @@ def main() -> None:
     p.add_argument("--every", type=int, default=5, help="print every N rounds")
     p.add_argument("--verbose", action="store_true")
     args = p.parse_args()
+    if args.scaffold != "none" and args.proximal_mu:
+        p.error("--scaffold and --proximal-mu are alternatives; give one")
     torch.set_num_threads(1)
     settings = FlSettings(
         run_dir=args.run_dir,
@@ -208,9 +265,21 @@ def main() -> None:
     global_state = build(model_config, settings.seed, args.freeze_style_slope).state_dict()
     velocity: dict[str, torch.Tensor] = {}
     moments: dict[str, dict[str, torch.Tensor]] = {"m": {}, "v": {}}
+    variates: dict[int, dict[str, torch.Tensor]] = {}
+    zeros = {
+        n: torch.zeros_like(w)
+        for n, w in build(model_config, settings.seed, False).named_parameters()
+    }
+    counts = {d: len(splits[d][0]) if args.weighting == "samples" else 1.0 for d in drones}
     for r in range(1, args.rounds + 1):
+        new_variates: dict[int, dict[str, torch.Tensor]] = {}
         states, weights, losses, drift = [], [], {}, {}
         g = flat(global_state)
+        if args.scaffold == "exact":
+            model = build(model_config, settings.seed, args.freeze_style_slope)
+            model.load_state_dict(global_state)
+            variates = {d: full_gradient(model, splits[d][0], settings.seed + r) for d in drones}
+        server_variate = weighted_mean(variates, counts) if variates else {}
         for d in drones:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)
@@ -221,11 +290,25 @@ def main() -> None:
                 optimizer=args.optimizer,
             )
             prox = proximal_term(global_state, args.proximal_mu) if args.proximal_mu else None
+            corrected = args.scaffold != "none" and r >= args.scaffold_from and bool(variates)
+            if corrected:
+                prox = drift_correction(server_variate, variates[d])
             stats = train_local(model, splits[d][0], config, prox)
+            if args.scaffold == "path":
+                new_variates[d] = updated_control_variate(
+                    variates[d] if corrected else zeros,
+                    server_variate if corrected else zeros,
+                    global_state,
+                    dict(model.named_parameters()),
+                    local_steps(len(splits[d][0]), config),
+                    config,
+                )
             states.append(model.state_dict())
             weights.append(stats.num_examples if args.weighting == "samples" else 1.0)
             losses[d] = evaluate(model, splits[d][0])
             drift[d] = float((flat(states[-1]) - g).norm() / g.norm())
+        if args.scaffold == "path":
+            variates = new_variates
         total = sum(weights)
         average = {
             k: sum(w * s[k] for w, s in zip(weights, states, strict=True)) / total

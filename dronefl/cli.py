@@ -3,12 +3,16 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 
 from __future__ import annotations
 
+import os
 import signal
+import sys
 import tempfile
+import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, NoReturn
 
 import typer
 
@@ -201,7 +205,8 @@ PresetOption = Annotated[
     typer.Option(
         "--config",
         help="Training setting: ours (the closed loop's) | paper (E=10, Adam 1e-3) | metric "
-        "(ours + box sizes x altitude, batch 64) | metric-sgd (metric with SGD, lr 3e-4).",
+        "(ours + box sizes x altitude, batch 64) | metric-sgd (metric with SGD, lr 3e-4) | "
+        "metric-scaffold (metric-sgd with SCAFFOLD's drift correction).",
     ),
 ]
 
@@ -1057,16 +1062,57 @@ def deploy_certs(
 app.command("bench")(bench_command)
 
 
+#: How long the process waits at exit for threads that are still running, s.
+EXIT_GRACE_S = 5.0
+#: Exit code after Ctrl-C (SIGINT), as Click gives it: 128 + 2.
+INTERRUPTED = 130
+
+
 def main() -> None:
     """Entry point with bad-input errors turned into one line and exit code 2, and a failed
-    training run into one line and exit code 1."""
+    training run into one line and exit code 1; never hangs at exit (see :func:`leave`)."""
     try:
         app()
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+        if code == INTERRUPTED:
+            typer.secho(
+                "interrupted: finished rounds and episodes are kept; --resume continues",
+                err=True,
+                fg="red",
+            )
+        leave(code)
     except USER_ERRORS as exc:
-        raise SystemExit(fail(str(exc)).exit_code) from None
+        leave(fail(str(exc)).exit_code)
     except TrainingError as exc:  # a run that failed (logged above): one line, exit code 1
         fail(str(exc))
-        raise SystemExit(1) from None
+        leave(1)
+    leave(0)
+
+
+def leave(code: int) -> NoReturn:
+    """Exit with ``code``, also after Ctrl-C in a federated round.
+
+    Flower's simulation engine, stopped by Ctrl-C, shuts Ray down but leaves its worker threads
+    (not daemons) blocked in ``ray.get`` on actors that no longer exist, and the interpreter
+    would wait for them forever (:data:`dronefl.fl.simulation.ENGINE_INTERRUPTED`). Then the
+    threads get :data:`EXIT_GRACE_S` s to finish, Ray is shut down if it is still up, and the
+    process ends at once. Results and checkpoints are written atomically, so nothing
+    half-written is left."""
+    simulation = sys.modules.get("dronefl.fl.simulation")
+    if simulation is None or not simulation.ENGINE_INTERRUPTED.is_set():
+        raise SystemExit(code)
+    main_thread = threading.main_thread()
+    deadline = time.monotonic() + EXIT_GRACE_S
+    for thread in threading.enumerate():
+        if thread is not main_thread and not thread.daemon:
+            thread.join(max(0.0, deadline - time.monotonic()))
+    ray = sys.modules.get("ray")
+    if ray is not None and ray.is_initialized():
+        ray.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 if __name__ == "__main__":

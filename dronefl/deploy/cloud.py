@@ -168,6 +168,7 @@ class CloudEpisode:
         self.inbox = _Inbox()
         self.state, _ = load_model(Path(settings.model))
         self.history: list[RoundRecord] = []
+        self.control: dict[str, torch.Tensor] | None = None  # SCAFFOLD's c, kept across rounds
         self.rounds: list[DeployedRound] = []
         self.nodes: dict[int, int] = {}  # drone id -> its SuperNode's id
         m, n = len(s.drones), len(s.targets)
@@ -374,7 +375,7 @@ class CloudEpisode:
         weights: dict[str, dict[int, int]] = {"down": {}, "up": {}}
         if nodes:
             grid = DroneGrid(self.grid, nodes, self._is_alive, self.settings.round_timeout)
-            driver = RoundDriver(grid, self.fl, len(nodes), self.history)
+            driver = RoundDriver(grid, self.fl, len(nodes), self.history, self.control)
             new_state = driver.play(self.state, server_round)
             if driver.history and driver.history[-1].server_round == server_round:
                 self.history = driver.history
@@ -382,7 +383,7 @@ class CloudEpisode:
                 trained = dict(result.train_loss)
                 rejected = result.rejected
                 if trained:
-                    self.state = new_state
+                    self.state, self.control = new_state, driver.control
                     traffic = {"down": dict(result.bytes_down), "up": dict(result.bytes_up)}
                     weights = self._install(grid, server_round, nodes, set(trained), traffic)
         participants = tuple(sorted(trained))

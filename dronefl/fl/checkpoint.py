@@ -1,9 +1,10 @@
 """Atomic per-round checkpoints of the global model, and resuming from them.
 
 After every global round the server writes ``history.json`` (one entry per finished round) and
-then ``checkpoint.npz`` (the global weights, the round and the method), each atomically and
-fsynced. In that order a kill between the two leaves a history one round ahead of the
-checkpoint, whose extra entry is dropped on resume (the round is played again, bit for bit);
+then ``checkpoint.npz`` (the global weights, the round, the method and, with SCAFFOLD, the
+cloud's control variate), each atomically and fsynced. In that order a kill between the two
+leaves a history one round ahead of the checkpoint, whose extra entry is dropped on resume (the
+round is played again, bit for bit);
 never a checkpoint whose history lacks a round. So a killed run loses at most the round in
 progress, and ``--resume`` continues at the next round.
 """
@@ -23,6 +24,7 @@ from dronefl.io import atomic_savez, atomic_write_json
 
 CHECKPOINT_FORMAT = "dronefl.fl_checkpoint"
 _PREFIX = "w:"
+_CONTROL_PREFIX = "c:"
 
 
 class CheckpointError(ValueError):
@@ -32,18 +34,21 @@ class CheckpointError(ValueError):
 @dataclass(frozen=True)
 class Checkpoint:
     """The global model ``state`` after global round ``server_round`` of ``method``, with the
-    ``history`` of every round up to it."""
+    ``history`` of every round up to it and, with SCAFFOLD, the cloud's ``control`` variate."""
 
     method: str
     server_round: int
     state: dict[str, torch.Tensor]
     history: list[RoundRecord]
+    control: dict[str, torch.Tensor] | None = None
 
 
 def save_checkpoint(path: Path, history_path: Path, checkpoint: Checkpoint) -> None:
     """Write the history, then the weights (each atomically)."""
     atomic_write_json(history_path, [r.to_json() for r in checkpoint.history])
     arrays = {_PREFIX + k: v.detach().cpu().numpy() for k, v in checkpoint.state.items()}
+    for k, v in (checkpoint.control or {}).items():
+        arrays[_CONTROL_PREFIX + k] = v.detach().cpu().numpy()
     atomic_savez(
         path,
         format=np.array(CHECKPOINT_FORMAT),
@@ -75,6 +80,11 @@ def load_checkpoint(
                 for k in npz.files
                 if k.startswith(_PREFIX)
             }
+            control = {
+                k[len(_CONTROL_PREFIX) :]: torch.from_numpy(npz[k].copy())
+                for k in npz.files
+                if k.startswith(_CONTROL_PREFIX)
+            }
     except CheckpointError:
         raise
     except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError) as exc:
@@ -87,11 +97,14 @@ def load_checkpoint(
         raise CheckpointError(f"{path}: round {server_round} is not a finished round")
     if not state or not all(v.is_floating_point() for v in state.values()):
         raise CheckpointError(f"{path}: checkpoint holds no floating-point weights")
-    if not all(bool(torch.isfinite(v).all()) for v in state.values()):
+    if not all(bool(torch.isfinite(v).all()) for v in [*state.values(), *control.values()]):
         raise CheckpointError(f"{path}: checkpoint holds non-finite weights")
     if like is not None:
         _check_like(path, state, like)
-    return Checkpoint(saved_method, server_round, state, load_history(history_path, server_round))
+        if control:
+            _check_like(path, control, like)
+    history = load_history(history_path, server_round)
+    return Checkpoint(saved_method, server_round, state, history, control or None)
 
 
 def _check_like(path: Path, state: dict[str, torch.Tensor], like: dict[str, torch.Tensor]) -> None:

@@ -5,7 +5,10 @@ On ``train`` a drone loads the global weights (one flat vector, see
 (:func:`dronefl.models.train.train_local`, with FedProx's proximal term when the strategy sent
 ``proximal-mu``) and replies with its weights and sample count. On ``evaluate`` it reports the
 test MSE of the global model on its held-out (later) windows. FedPer drones keep the output
-head in ``context.state`` and never send it.
+head in ``context.state`` and never send it. With SCAFFOLD (``drift-correction``) a drone
+keeps its control variate c_i in ``context.state``, steps along ``g_i - c_i + c`` with the
+cloud's c received beside the weights, and sends its new c_i beside its weights. What a drone
+keeps also goes to its disk (``<out>/personal``, ``<out>/control``), for a resumed run.
 
 Which drone a node is: ``node_config["drone-id"]`` in a deployment, else the
 ``partition-id``-th drone of the recorded run (simulation). Settings come from the run config
@@ -28,6 +31,7 @@ from dronefl.fl.faults import inject
 from dronefl.fl.records import (
     ARRAYS_KEY,
     CONFIG_KEY,
+    CONTROL_KEY,
     DRONE_KEY,
     METRICS_KEY,
     PARTITION_KEY,
@@ -41,7 +45,15 @@ from dronefl.fl.records import (
 )
 from dronefl.io import atomic_savez
 from dronefl.models.model import TrajectoryTransformer, build_model
-from dronefl.models.train import TrainStats, evaluate, proximal_term, train_local
+from dronefl.models.train import (
+    TrainStats,
+    drift_correction,
+    evaluate,
+    local_steps,
+    proximal_term,
+    train_local,
+    updated_control_variate,
+)
 from dronefl.models.windows import WindowSet, WindowSpec, load_drone_split
 
 
@@ -67,14 +79,20 @@ def build_client_app(defaults: dict | None = None) -> ClientApp:
 def handle_train(msg: Message, context: Context, settings: FlSettings) -> Message:
     """One round of local training on this drone."""
     settings, instructions, drone_id = _round_context(msg, context, settings)
+    server_round = instructions.server_round
     train_set, _ = _windows(settings.run_dir, drone_id, settings.windows, settings.labels)
     layout = settings.layout
     global_state = layout.unpack(msg.content[ARRAYS_KEY])
-    model = _local_model(settings, global_state, context, drone_id, instructions.server_round)
+    model = _local_model(settings, global_state, context, drone_id, server_round)
     regularizer = None
     if instructions.proximal_mu > 0:
         regularizer = proximal_term(global_state, instructions.proximal_mu)
-    config = settings.train_config(instructions.server_round, drone_id)
+    if settings.scaffold:
+        server_control = layout.unpack_control(msg.content[ARRAYS_KEY])
+        control = _kept(context, CONTROL_KEY, _control_path(settings, drone_id, server_round - 1))
+        control = layout.zeros() if control is None else control
+        regularizer = drift_correction(server_control, control)
+    config = settings.train_config(server_round, drone_id)
     if len(train_set) == 0:  # no labelled window (yet): the server leaves this drone out
         stats = TrainStats(0, float("nan"), 0.0)
     else:
@@ -82,10 +100,18 @@ def handle_train(msg: Message, context: Context, settings: FlSettings) -> Messag
     state = model.state_dict()
     if settings.method_spec.personal:
         head = {k: v for k, v in state.items() if k.startswith(TrajectoryTransformer.HEAD)}
-        _keep_personal(context, settings, drone_id, head)
+        _keep(context, PERSONAL_KEY, _personal_path(settings, drone_id), head)
         state = {k: v for k, v in state.items() if k in global_state}
+    if settings.scaffold and stats.num_examples > 0:
+        steps = local_steps(stats.num_examples, config)
+        control = updated_control_variate(
+            control, server_control, global_state, state, steps, config
+        )
+        _keep(context, CONTROL_KEY, _control_path(settings, drone_id, server_round), control)
+        _control_path(settings, drone_id, server_round - 2).unlink(missing_ok=True)
     report = ClientReport(drone_id, stats.num_examples, stats.loss)
-    content = RecordDict({ARRAYS_KEY: layout.pack(state), METRICS_KEY: report.to_metrics()})
+    arrays = layout.pack(state, control if settings.scaffold else None)
+    content = RecordDict({ARRAYS_KEY: arrays, METRICS_KEY: report.to_metrics()})
     content = inject(settings, instructions.server_round, drone_id, content)
     return Message(content=content, reply_to=msg)
 
@@ -127,25 +153,36 @@ def _local_model(
 def _personal(
     context: Context, settings: FlSettings, drone_id: int, server_round: int
 ) -> dict[str, torch.Tensor] | None:
-    if PERSONAL_KEY in context.state:
-        return to_state(context.state[PERSONAL_KEY])
-    # A resumed run starts with an empty context: the drone's own copy on its disk.
-    path = _personal_path(settings, drone_id)
-    if server_round > 1 and path.is_file():
+    if server_round == 1 and PERSONAL_KEY not in context.state:
+        return None
+    return _kept(context, PERSONAL_KEY, _personal_path(settings, drone_id))
+
+
+def _kept(context: Context, key: str, path: Path) -> dict[str, torch.Tensor] | None:
+    """What this drone kept under ``key``: from ``context.state``, or, in a resumed run (which
+    starts with an empty context), from its copy at ``path``; None if it kept nothing."""
+    if key in context.state:
+        return to_state(context.state[key])
+    if path.is_file():
         with np.load(path, allow_pickle=False) as npz:
             return {k: torch.from_numpy(npz[k].copy()) for k in npz.files}
     return None
 
 
-def _keep_personal(
-    context: Context, settings: FlSettings, drone_id: int, head: dict[str, torch.Tensor]
-) -> None:
-    context.state[PERSONAL_KEY] = to_arrays(head)
-    atomic_savez(_personal_path(settings, drone_id), **{k: v.numpy() for k, v in head.items()})
+def _keep(context: Context, key: str, path: Path, state: dict[str, torch.Tensor]) -> None:
+    """Keep ``state`` under ``key`` in ``context.state`` and atomically at ``path``."""
+    context.state[key] = to_arrays(state)
+    atomic_savez(path, **{k: v.numpy() for k, v in state.items()})
 
 
 def _personal_path(settings: FlSettings, drone_id: int) -> Path:
     return Path(settings.out_dir) / "personal" / f"drone_{drone_id}.npz"
+
+
+def _control_path(settings: FlSettings, drone_id: int, server_round: int) -> Path:
+    """The drone's control variate after ``server_round`` (by round, so that a run killed
+    after the drones' round but before the cloud's checkpoint resumes with the one it had)."""
+    return Path(settings.out_dir) / "control" / f"drone_{drone_id}_round_{server_round}.npz"
 
 
 def _settings(context: Context, defaults: dict | None) -> FlSettings:

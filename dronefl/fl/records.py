@@ -38,6 +38,8 @@ PARTITION_KEY = "partition-id"
 DRONE_KEY = "drone-id"
 RUN_DIR_KEY = "run-dir"
 WEIGHTS_KEY = "weights"
+#: SCAFFOLD's control variate, beside the weights on the wire (same layout).
+CONTROL_KEY = "control"
 #: Where a FedPer drone keeps its personal output head (``context.state``).
 PERSONAL_KEY = "personal-head"
 LABEL_SOURCES = ("ground_truth", "tracks")
@@ -46,6 +48,9 @@ WEIGHT_DTYPES = ("float32", "float16")
 #: How the cloud combines the screened updates (``--aggregation``): the sample-weighted mean
 #: (FedAvg), or one of Flower's robust rules (see :mod:`dronefl.fl.strategies`).
 AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum")
+#: Client-drift corrections (``--drift-correction``): none (FedAvg's local steps), or
+#: SCAFFOLD's control variates (Karimireddy et al., 2020, option II).
+DRIFT_CORRECTIONS = ("none", "scaffold")
 
 
 class SettingsError(ValueError):
@@ -80,7 +85,10 @@ class FlSettings:
     head's style starts; ``box_size`` how DroneFL's models read box sizes (see
     :data:`dronefl.models.model.BOX_SIZES`; the FL baselines always read ``image``);
     ``optimizer`` the local (and pooled) optimiser, ``adam`` or ``sgd`` with momentum (see
-    :class:`~dronefl.models.train.TrainConfig`). The
+    :class:`~dronefl.models.train.TrainConfig`); ``drift_correction`` one of
+    :data:`DRIFT_CORRECTIONS` (``scaffold``: every drone keeps a control variate c_i, the cloud
+    averages them into c, sent beside the weights, and the local steps follow
+    ``g_i - c_i + c``; needs ``optimizer = "sgd"``). The
     defaults are the setting the closed loop's models are pretrained with; :data:`PRESETS`
     names the paper's and the later ``metric`` and ``metric-sgd`` ones.
     """
@@ -110,12 +118,25 @@ class FlSettings:
     head_style_init: str = "altitude"
     box_size: str = "image"
     optimizer: str = "adam"
+    drift_correction: str = "none"
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
             raise SettingsError(
                 f"optimizer: {self.optimizer!r} is not one of {', '.join(OPTIMIZERS)}"
             )
+        if self.drift_correction not in DRIFT_CORRECTIONS:
+            raise SettingsError(
+                f"drift-correction: {self.drift_correction!r} is not one of "
+                f"{', '.join(DRIFT_CORRECTIONS)}"
+            )
+        if self.scaffold and self.optimizer != "sgd":
+            raise SettingsError(
+                "drift-correction: 'scaffold' needs optimizer 'sgd' (its control variate "
+                f"assumes SGD steps), got {self.optimizer!r}"
+            )
+        if self.scaffold and self.method_spec.proximal:
+            raise SettingsError("drift-correction: 'scaffold' and FedProx are alternatives")
         if self.labels not in LABEL_SOURCES:
             raise SettingsError(f"labels: {self.labels!r} is not one of {LABEL_SOURCES}")
         if self.weights_dtype not in WEIGHT_DTYPES:
@@ -147,6 +168,11 @@ class FlSettings:
             self.model  # noqa: B018 - builds and validates the predictor configuration
         except ValueError as exc:
             raise SettingsError(f"model: {exc}") from None
+
+    @property
+    def scaffold(self) -> bool:
+        """Whether the rounds carry SCAFFOLD's control variates."""
+        return self.drift_correction == "scaffold"
 
     @property
     def method_spec(self) -> Method:
@@ -281,18 +307,40 @@ class WeightLayout:
         """Number of weights."""
         return sum(math.prod(shape) for shape in self.shapes)
 
-    def pack(self, state: dict[str, torch.Tensor]) -> ArrayRecord:
-        """``state`` (same names and shapes) as one flat array of ``dtype``."""
+    def pack(
+        self, state: dict[str, torch.Tensor], control: dict[str, torch.Tensor] | None = None
+    ) -> ArrayRecord:
+        """``state`` (same names and shapes) as one flat array of ``dtype``; with ``control``
+        (SCAFFOLD's control variate, same layout) a second array beside it."""
+        arrays = {WEIGHTS_KEY: self._flat(state)}
+        if control is not None:
+            arrays[CONTROL_KEY] = self._flat(control)
+        return ArrayRecord(arrays)
+
+    def _flat(self, state: dict[str, torch.Tensor]) -> Array:
         if set(state) != set(self.names):
             raise SettingsError("weights: the state does not hold the layout's tensors")
         flat = torch.cat([state[k].detach().cpu().reshape(-1).float() for k in self.names])
-        return ArrayRecord({WEIGHTS_KEY: Array(flat.numpy().astype(self.dtype))})
+        return Array(flat.numpy().astype(self.dtype))
 
     def unpack(self, arrays: ArrayRecord) -> dict[str, torch.Tensor]:
         """The fp32 state dict in an ``ArrayRecord`` made by :meth:`pack`."""
-        if set(arrays.keys()) != {WEIGHTS_KEY}:
+        if set(arrays.keys()) - {CONTROL_KEY} != {WEIGHTS_KEY}:
             raise SettingsError(f"weights: expected one array {WEIGHTS_KEY!r}")
-        flat = arrays[WEIGHTS_KEY].numpy()
+        return self._unflat(arrays, WEIGHTS_KEY)
+
+    def unpack_control(self, arrays: ArrayRecord) -> dict[str, torch.Tensor]:
+        """The control variate in an ``ArrayRecord`` made by :meth:`pack` with one."""
+        if CONTROL_KEY not in arrays:
+            raise SettingsError(f"weights: no {CONTROL_KEY!r} array (SCAFFOLD) in the message")
+        return self._unflat(arrays, CONTROL_KEY)
+
+    def zeros(self) -> dict[str, torch.Tensor]:
+        """A state of zeros in this layout (SCAFFOLD's first control variates)."""
+        return {k: torch.zeros(shape) for k, shape in zip(self.names, self.shapes, strict=True)}
+
+    def _unflat(self, arrays: ArrayRecord, key: str) -> dict[str, torch.Tensor]:
+        flat = arrays[key].numpy()
         if flat.shape != (self.size,):
             raise SettingsError(f"weights: expected {self.size} values, got shape {flat.shape}")
         values = torch.from_numpy(flat.astype(np.float32))
@@ -439,6 +487,7 @@ _PRESET_FIELDS = (
     "head_style_init",
     "box_size",
     "optimizer",
+    "drift_correction",
 )
 
 
@@ -446,7 +495,7 @@ _PRESET_FIELDS = (
 class Preset:
     """A named training setting: local epochs E, the optimiser's ``lr``, the ``batch_size``,
     where AdaIN sits (``adain_sites``, ``head_style_init``), how boxes are read (``box_size``)
-    and the local ``optimizer``; see :class:`FlSettings` for each."""
+    the local ``optimizer`` and the ``drift_correction``; see :class:`FlSettings` for each."""
 
     name: str
     epochs: int
@@ -456,10 +505,17 @@ class Preset:
     head_style_init: str
     box_size: str
     optimizer: str
+    drift_correction: str = "none"
 
     def apply(self, settings: FlSettings) -> FlSettings:
-        """``settings`` with this preset's training setting."""
-        return replace(settings, **{k: getattr(self, k) for k in _PRESET_FIELDS})
+        """``settings`` with this preset's training setting (the drift correction only for
+        FedAvg-based federated methods: FedProx is an alternative to it, and methods trained in
+        the cloud or alone have no drift to correct)."""
+        values = {k: getattr(self, k) for k in _PRESET_FIELDS}
+        spec = settings.method_spec
+        if spec.proximal or not spec.federated:
+            values["drift_correction"] = "none"
+        return replace(settings, **values)
 
 
 def _default(name: str) -> object:
@@ -472,10 +528,15 @@ def _default(name: str) -> object:
 #: ``ours`` with box sizes read in proportion to the ground size and batch 64 (chosen on the
 #: tuning recording with seed 10, validation windows only; README); ``metric-sgd``: ``metric``
 #: with SGD (momentum 0.9, lr 3e-4) instead of Adam on the drones and in the pooled baselines
-#: (chosen on the tuning recording with seed 12, validation windows only; README).
+#: (chosen on the tuning recording with seed 12, validation windows only; README);
+#: ``metric-scaffold``: ``metric-sgd`` with SCAFFOLD's drift correction (chosen on the Case 2
+#: tuning recordings with seeds 10 and 11, validation windows only; README).
 PRESETS: dict[str, Preset] = {
     "ours": Preset("ours", *(_default(k) for k in _PRESET_FIELDS)),
     "paper": Preset("paper", 10, 1e-3, 128, "encoder", "identity", "image", "adam"),
     "metric": Preset("metric", 10, 1e-3, 64, "encoder,head", "altitude", "metric", "adam"),
     "metric-sgd": Preset("metric-sgd", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd"),
+    "metric-scaffold": Preset(
+        "metric-scaffold", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold"
+    ),
 }

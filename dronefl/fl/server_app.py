@@ -63,16 +63,17 @@ def run_server(
     grid: Grid, settings: FlSettings, on_round: RoundCallback | None = None
 ) -> list[RoundRecord]:
     """Run (or resume) ``settings.rounds`` global rounds; returns the round history."""
-    state, offset, history = initial_state(settings), 0, []
+    state, offset, history, control = initial_state(settings), 0, [], None
     if settings.resume and settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(
             settings.checkpoint_path, settings.history_path, settings.method, like=state
         )
         state, offset, history = checkpoint.state, checkpoint.server_round, checkpoint.history
+        control = checkpoint.control
     remaining = settings.rounds - offset
     if remaining <= 0:
         return history
-    driver = RoundDriver(grid, settings, num_drones(settings.run_dir), history)
+    driver = RoundDriver(grid, settings, num_drones(settings.run_dir), history, control)
     driver.play(state, offset + 1, remaining, on_round=on_round)
     return driver.history
 
@@ -106,7 +107,10 @@ class RoundDriver:
     Each round's entry is appended to :attr:`history` and the checkpoint and history are
     written atomically to ``settings.out_dir``. Weights travel as
     :meth:`FlSettings.layout` says (one flat fp32 or fp16 vector); :attr:`traffic` holds the
-    bytes of every message, by round and message type.
+    bytes of every message, by round and message type. With SCAFFOLD, :attr:`control` is the
+    cloud's control variate c (zeros at the start, or ``control``), sent beside the weights;
+    Flower's sample-weighted mean of the drones' c_i becomes the next c, and it is
+    checkpointed with the weights.
     """
 
     def __init__(
@@ -115,11 +119,15 @@ class RoundDriver:
         settings: FlSettings,
         n_drones: int,
         history: list[RoundRecord] | None = None,
+        control: dict[str, torch.Tensor] | None = None,
     ) -> None:
         self.settings = settings
         self.n_drones = n_drones
         self.history: list[RoundRecord] = list(history or [])
         self.layout = settings.layout
+        self.control: dict[str, torch.Tensor] | None = None
+        if settings.scaffold:
+            self.control = self.layout.zeros() if control is None else control
         self._grid = CountingGrid(StartupGrid(grid))
 
     @property
@@ -158,10 +166,12 @@ class RoundDriver:
             entry = strategy.logs[server_round].record(self.traffic.of_round(server_round))
             self.history.append(entry)
             latest.update(self.layout.unpack(arrays))
+            if self.control is not None:
+                self.control = self.layout.unpack_control(arrays)
             save_checkpoint(
                 settings.checkpoint_path,
                 settings.history_path,
-                Checkpoint(settings.method, server_round, dict(latest), self.history),
+                Checkpoint(settings.method, server_round, dict(latest), self.history, self.control),
             )
             if on_round is not None:
                 on_round(entry)
@@ -169,7 +179,7 @@ class RoundDriver:
 
         strategy.start(
             self._grid,
-            self.layout.pack(state),
+            self.layout.pack(state, self.control),
             num_rounds=n_rounds,
             train_config=config,
             evaluate_config=ConfigRecord(dict(config)),

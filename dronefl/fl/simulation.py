@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import TypeVar
@@ -37,6 +38,21 @@ os.environ.setdefault("RAY_worker_niceness", "0")
 # reconnect: 60 s by default (measured: 61.7 s; with 20, 20.1 s). Every other process of the
 # run is gone within about a second.
 os.environ.setdefault("RAY_gcs_rpc_server_reconnect_timeout_s", "20")
+
+
+#: Set once Ctrl-C has stopped a simulation engine in this process. Flower's engine then shuts
+#: Ray down, but its worker threads (not daemons) stay blocked in ``ray.get`` for actors that no
+#: longer exist, so the interpreter cannot exit normally (``dronefl.cli.leave`` ends it).
+ENGINE_INTERRUPTED = threading.Event()
+
+
+def _run_engine(**kwargs: object) -> None:
+    """``run_simulation(**kwargs)``, noting a Ctrl-C in :data:`ENGINE_INTERRUPTED`."""
+    try:
+        run_simulation(**kwargs)  # type: ignore[arg-type]
+    except KeyboardInterrupt:
+        ENGINE_INTERRUPTED.set()
+        raise
 
 
 #: Environment variable: how many Ray workers (one CPU each) the simulation engine starts.
@@ -81,7 +97,7 @@ def run_federated(
     but a model that missed a whole round is not the model the run was asked for."""
     config = settings.to_run_config()
     with _quiet_flower():
-        run_simulation(
+        _run_engine(
             server_app=build_server_app(config, on_round),
             client_app=build_client_app(config),
             num_supernodes=num_drones(settings.run_dir),
@@ -130,7 +146,7 @@ def run_session(
             failure.append(exc)
 
     with _quiet_flower():
-        run_simulation(
+        _run_engine(
             server_app=app,
             client_app=build_client_app(settings.to_run_config()),
             num_supernodes=n_drones,

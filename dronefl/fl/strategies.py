@@ -4,7 +4,7 @@ Flower's strategy owns the round loop (``Strategy.start``); DroneFL only overrid
 
 * ``configure_train`` / ``configure_evaluate`` number rounds globally, so that a resumed run
   continues at round ``k + 1`` (``round_offset``), and remember the names and shapes of the
-  arrays sent;
+  arrays sent; evaluation is sent the weights without SCAFFOLD's control variate;
 * ``aggregate_train`` first screens every reply (:func:`screen_reply`): a drone that failed,
   sent no weights, other names or shapes, non-finite or absurd weights is left out of that round and
   logged, and the rest are averaged as usual (in drone order, so that a run is reproducible
@@ -38,6 +38,7 @@ from flwr.serverapp.strategy import FedAvg, FedMedian, FedProx, FedTrimmedAvg, K
 from dronefl.fl.methods import Method
 from dronefl.fl.records import (
     ARRAYS_KEY,
+    CONTROL_KEY,
     RoundRecord,
     SettingsError,
     mean_test_mse_metrics,
@@ -171,6 +172,8 @@ class RobustRounds:
     def configure_evaluate(
         self, server_round: int, arrays: ArrayRecord, config: ConfigRecord, grid: Grid
     ) -> Iterable[Message]:
+        # Evaluation needs the weights only, not SCAFFOLD's control variate.
+        arrays = ArrayRecord({k: v for k, v in arrays.items() if k != CONTROL_KEY})
         return self._ask(
             super().configure_evaluate(server_round + self.round_offset, arrays, config, grid)  # type: ignore[misc]
         )

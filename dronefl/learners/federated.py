@@ -38,11 +38,13 @@ def session_settings(setup: LearnerSetup) -> FlSettings:
 
 @dataclass(frozen=True)
 class FederatedState:
-    """What a federated learner carries between rounds: the global ``weights`` and the
-    ``history`` of the rounds played (the server's ``history.json`` goes on from it)."""
+    """What a federated learner carries between rounds: the global ``weights``, the
+    ``history`` of the rounds played (the server's ``history.json`` goes on from it) and, with
+    SCAFFOLD, the cloud's ``control`` variate."""
 
     weights: dict[str, torch.Tensor]
     history: tuple[RoundRecord, ...]
+    control: dict[str, torch.Tensor] | None = None
 
 
 class FederatedLearner(Learner):
@@ -85,14 +87,16 @@ class FederatedLearner(Learner):
         )
 
     def state(self) -> FederatedState:
-        """The global weights and the round history."""
-        return FederatedState(self.weights, tuple(self.driver.history))
+        """The global weights, the round history and the control variate (SCAFFOLD)."""
+        return FederatedState(self.weights, tuple(self.driver.history), self.driver.control)
 
     def restore(self, state: FederatedState) -> None:
         """Continue from ``state``: the next round starts from its weights and the server's
         history goes on from its rounds."""
         self.weights = state.weights
         self.driver.history = list(state.history)
+        if state.control is not None:
+            self.driver.control = state.control
 
 
 def write_round_data(folder: Path, records: list[OnboardRecord], labels: np.ndarray) -> None:

@@ -76,6 +76,50 @@ def proximal_term(reference: dict[str, torch.Tensor], mu: float) -> Regularizer:
     return term
 
 
+def drift_correction(server: dict[str, torch.Tensor], own: dict[str, torch.Tensor]) -> Regularizer:
+    """SCAFFOLD's corrected local step (Karimireddy et al., 2020) as a loss term
+    ``sum_k <c_k - c_i,k, w_k>`` over the parameters named in ``server``: its gradient
+    ``c - c_i`` is added to every local gradient, so the drone steps along
+    ``g_i(w) - c_i + c``, its own gradient with its bias against the federation's removed.
+    ``server`` is the cloud's control variate c, ``own`` the drone's c_i (both fixed)."""
+    correction = {k: (server[k] - own[k]).detach().clone() for k in server}
+
+    def term(model: nn.Module) -> torch.Tensor:
+        total = torch.zeros(())
+        for name, w in model.named_parameters():
+            if name in correction:
+                total = total + (w * correction[name]).sum()
+        return total
+
+    return term
+
+
+def local_steps(num_examples: int, config: TrainConfig) -> int:
+    """Optimiser steps K of one :func:`train_local` call on ``num_examples`` windows."""
+    return config.epochs * -(-num_examples // config.batch_size)
+
+
+def updated_control_variate(
+    own: dict[str, torch.Tensor],
+    server: dict[str, torch.Tensor],
+    start: dict[str, torch.Tensor],
+    end: dict[str, torch.Tensor],
+    steps: int,
+    config: TrainConfig,
+) -> dict[str, torch.Tensor]:
+    """SCAFFOLD's option II: the drone's new control variate, the mean (corrected) gradient
+    of its ``steps`` local steps from the global weights ``start`` to its weights ``end``,
+    ``c_i+ = c_i - c + (x - y_i) / (K lr_eff)``.
+
+    ``lr_eff = lr / (1 - beta)`` for SGD with momentum beta (a steady gradient g moves the
+    weights by lr g / (1 - beta) per step); the estimate assumes plain or momentum SGD, which
+    is why SCAFFOLD runs refuse Adam (:class:`dronefl.fl.records.FlSettings`)."""
+    if config.optimizer != "sgd":
+        raise ValueError("SCAFFOLD's control variate needs optimizer 'sgd'")
+    scale = (1.0 - SGD_MOMENTUM) / (steps * config.lr)
+    return {k: own[k] - server[k] + scale * (start[k] - end[k]).detach() for k in server}
+
+
 def _tensors(data: WindowSet) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return (
         torch.from_numpy(data.features),

@@ -1,0 +1,77 @@
+"""Ctrl-C in the middle of a federated run ends `dronefl` promptly with exit code 130 and one
+line, every process it started exits, and `--resume` can go on from what was written.
+
+Flower's simulation engine, interrupted, stops Ray but leaves its worker threads blocked in
+``ray.get``; before ``dronefl.cli.leave`` the process then waited for them forever."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import psutil
+import pytest
+
+from dronefl.fl.checkpoint import load_checkpoint
+
+TINY = ["--scenario", "case1", "--duration", "40", "--stride", "5", "--seeds", "3", "--epochs", "2"]
+#: Seconds the interrupted process may take to end (the grace for stuck threads is 5 s).
+EXIT_WITHIN_S = 30.0
+
+
+@pytest.mark.slow
+def test_ctrl_c_during_a_round_ends_the_run_and_every_process(tmp_path):
+    out = tmp_path / "fl"
+    env = {**os.environ, "FLWR_TELEMETRY_ENABLED": "0", "MPLBACKEND": "Agg"}
+    argv = ["fl-offline", *TINY, "--rounds", "40", "--methods", "dronefl", "--out", str(out)]
+    process = subprocess.Popen(
+        [sys.executable, "-m", "dronefl.cli", *argv],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    history = out / "seed_3" / "dronefl" / "history.json"
+    started: dict[int, psutil.Process] = {}
+    deadline = time.monotonic() + 240
+    try:
+        while not history.is_file() and process.poll() is None:
+            assert time.monotonic() < deadline, "no round finished within 240 s"
+            for child in psutil.Process(process.pid).children(recursive=True):
+                started.setdefault(child.pid, child)
+            time.sleep(0.2)
+        assert process.poll() is None, "the run ended before it could be interrupted"
+        time.sleep(1.0)  # into the next round
+        interrupted = time.monotonic()
+        process.send_signal(signal.SIGINT)
+        try:
+            _, err = process.communicate(timeout=EXIT_WITHIN_S)
+        except subprocess.TimeoutExpired:
+            pytest.fail(f"dronefl still running {EXIT_WITHIN_S:.0f} s after Ctrl-C")
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+    assert process.returncode == 130
+    assert "interrupted: finished rounds and episodes are kept" in err
+    assert "Traceback" not in err
+    assert time.monotonic() - interrupted < EXIT_WITHIN_S
+    # Every process of the run (Ray's included) is gone within 30 s.
+    gone_by = time.monotonic() + 30
+    while (alive := [p for p in started.values() if _alive(p)]) and time.monotonic() < gone_by:
+        time.sleep(0.5)
+    assert not alive, f"left running after Ctrl-C: {[p.name() for p in alive]}"
+    # What was written is whole: the checkpoint and the history of the finished rounds.
+    checkpoint = load_checkpoint(history.parent / "checkpoint.npz", history, "dronefl")
+    assert checkpoint.server_round >= 1
+    assert len(json.loads(history.read_text())) >= checkpoint.server_round
+
+
+def _alive(process: psutil.Process) -> bool:
+    """Running and not a zombie (an exited process that its new parent has not reaped yet)."""
+    try:
+        return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
