@@ -36,14 +36,14 @@ def _place(source: Path, target: Path) -> None:
 
 
 def _fl_run(tmp_path: Path, recorded: Path) -> Path:
-    """An fl-offline folder whose seed-0 recording is ``recorded``; returns the seed's folder."""
-    out = tmp_path / "fl" / "seed_0"
+    """An fl-offline folder whose seed-2 recording is ``recorded``; returns the seed's folder."""
+    out = tmp_path / "fl" / "seed_2"
     shutil.copytree(recorded, out / "data")
     return out
 
 
-FL = ["fl-offline", "--scenario", "case1", "--seeds", "0", "--methods", "fedavg", "--rounds", "2",
-      "--resume"]  # fmt: skip
+FL = ["fl-offline", "--scenario", "case1", "--seeds", "2", "--duration", "20",
+      "--methods", "fedavg", "--rounds", "2", "--resume"]  # fmt: skip
 
 
 def _onboard(tmp_path, recorded, case):
@@ -74,7 +74,7 @@ def _checkpoint(tmp_path, recorded, case):
 
 def _history(tmp_path, recorded, case):
     out = _fl_run(tmp_path, recorded)
-    settings = FlSettings(str(out / "data"), str(out / "fedavg"), method="fedavg")
+    settings = FlSettings(str(out / "data"), str(out / "fedavg"), method="fedavg", seed=2)
     save_checkpoint(
         settings.checkpoint_path,
         settings.history_path,

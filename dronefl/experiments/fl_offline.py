@@ -339,31 +339,29 @@ def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> O
     )
     if config.resume and results_path.is_file():
         earlier = OfflineResults.load(results_path)
-        if (earlier.scenario, earlier.preset, earlier.rounds) != (
-            results.scenario,
-            results.preset,
-            results.rounds,
-        ):
+        if _experiment(earlier) != _experiment(results):
             raise CheckpointError(
                 f"{results_path}: results of another experiment ({earlier.scenario}, "
-                f"config {earlier.preset}, {earlier.rounds} rounds); use another --out"
+                f"config {earlier.preset}, {earlier.rounds} rounds, {earlier.duration_s:g} s, "
+                f"stride {earlier.stride}, mu {earlier.proximal_mu:g}); use another --out"
             )
         results = replace(results, methods=dict(earlier.methods))
     for seed in config.seeds:
         record(config, scenario, seed)
         for method in config.methods:
             settings = config.settings(method, seed, scenario)
+            if not config.resume:
+                shutil.rmtree(settings.out_dir, ignore_errors=True)
+            _claim(settings)
             if config.resume and _finished(settings) is not None and _seed_file(settings).is_file():
                 done = _load_seed_result(settings, config)
             else:
-                if not config.resume:
-                    shutil.rmtree(settings.out_dir, ignore_errors=True)
                 started = time.perf_counter()
                 label = f"{scenario.name} seed {seed} {method}"
                 with progress_bar(label, config.rounds, config.progress) as advance:
                     history = train_method(settings, advance)
                 done = SeedResult.of(seed, history, time.perf_counter() - started)
-                atomic_write_json(_seed_file(settings), _seed_json(done, config))
+                atomic_write_json(_seed_file(settings), _seed_json(done, config, settings))
             results.methods[method] = _block(results, settings).with_seed(done)
             results.save(results_path)
     if config.resume:
@@ -373,6 +371,18 @@ def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> O
     plot_fig5(ran, f"{scenario.name}, seeds {_seeds(config.seeds)}", _fig5_path(config, scenario))
     atomic_write_text(config.out / "table.md", comparison_table([results], tuple(results.methods)))
     return results
+
+
+def _experiment(results: OfflineResults) -> tuple:
+    """What must agree for results to belong to one experiment."""
+    return (
+        results.scenario,
+        results.preset,
+        results.rounds,
+        results.duration_s,
+        results.stride,
+        results.proximal_mu,
+    )
 
 
 def _block(results: OfflineResults, settings: FlSettings) -> MethodResult:
@@ -390,8 +400,45 @@ def _seed_file(settings: FlSettings) -> Path:
     return Path(settings.out_dir) / "result.json"
 
 
-def _seed_json(result: SeedResult, config: OfflineConfig) -> dict:
-    return {"config": config.preset, "rounds": config.rounds, **result.to_json()}
+def _settings_file(settings: FlSettings) -> Path:
+    """Where a (method, seed) folder records the settings it trains with."""
+    return Path(settings.out_dir) / "settings.json"
+
+
+def _claim(settings: FlSettings) -> None:
+    """Record the settings ``settings.out_dir`` trains with; resuming, first refuse a folder
+    that recorded other ones, so that a checkpoint or result of another setting (say another
+    ``--epochs`` into the same ``--out``) is never continued or reported as this one. A
+    folder from before settings were recorded keeps only the config and rounds check."""
+    path = _settings_file(settings)
+    if settings.resume and path.is_file():
+        try:
+            recorded = json.loads(path.read_text())
+        except (OSError, ValueError):
+            raise CheckpointError(f"{path}: corrupt settings; remove the folder") from None
+        _refuse_other(path, recorded, settings.training_key())
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(path, settings.training_key())
+
+
+def _refuse_other(path: Path, recorded: object, asked: dict) -> None:
+    """Raise :class:`CheckpointError` naming every setting in which ``recorded`` (read from
+    ``path``) differs from ``asked``."""
+    if not isinstance(recorded, dict):
+        raise CheckpointError(f"{path}: corrupt settings; remove the folder")
+    differ = sorted(k for k in recorded.keys() | asked.keys() if recorded.get(k) != asked.get(k))
+    if differ:
+        said = ", ".join(f"{k} {recorded.get(k)!r} there, {asked.get(k)!r} now" for k in differ)
+        raise CheckpointError(f"{path}: trained with other settings ({said}); use another --out")
+
+
+def _seed_json(result: SeedResult, config: OfflineConfig, settings: FlSettings) -> dict:
+    return {
+        "config": config.preset,
+        "rounds": config.rounds,
+        "settings": settings.training_key(),
+        **result.to_json(),
+    }
 
 
 def _load_seed_result(settings: FlSettings, config: OfflineConfig) -> SeedResult:
@@ -403,6 +450,8 @@ def _load_seed_result(settings: FlSettings, config: OfflineConfig) -> SeedResult
                 f"{path}: a run of config {raw['config']} with {raw['rounds']} rounds, not "
                 f"{config.preset} with {config.rounds}; use another --out"
             )
+        if "settings" in raw:
+            _refuse_other(path, raw["settings"], settings.training_key())
         return SeedResult.from_json(raw)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         if isinstance(exc, CheckpointError):
@@ -438,7 +487,9 @@ def _seeds(seeds: tuple[int, ...]) -> str:
 def record(config: OfflineConfig, scenario: Scenario, seed: int) -> Path:
     """Record (or, resuming, reuse) the crop-field run of ``seed``; returns its folder."""
     run_dir = config.seed_dir(seed) / "data"
-    if not (config.resume and (run_dir / "ground_truth.npz").is_file()):
+    if config.resume and (run_dir / "ground_truth.npz").is_file():
+        _same_recording(run_dir / "summary.json", scenario.name, seed, config.duration)
+    else:
         simulate(
             scenario,
             environment="crop_field",
@@ -450,6 +501,20 @@ def record(config: OfflineConfig, scenario: Scenario, seed: int) -> Path:
         )
     load_run(run_dir)  # a corrupt recording fails here, naming the file, before any training
     return run_dir
+
+
+def _same_recording(path: Path, scenario: str, seed: int, duration: float) -> None:
+    """Refuse to train on a kept recording of another scenario, seed or duration."""
+    try:
+        summary = json.loads(path.read_text())
+        ran = (summary["scenario"], summary["seed"], float(summary["sim_seconds"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        raise CheckpointError(f"{path}: missing or corrupt; remove its folder") from None
+    if ran != (scenario, seed, duration):
+        raise CheckpointError(
+            f"{path}: a recording of {ran[0]} seed {ran[1]}, {ran[2]:g} s, not {scenario} "
+            f"seed {seed}, {duration:g} s; use another --out"
+        )
 
 
 def train_method(settings: FlSettings, advance: Callable[[int], None]) -> list[RoundRecord]:

@@ -36,8 +36,6 @@ from dronefl.progress import progress_bar
 
 PRETRAIN_SEED = 1000
 KINDS = ("dronefl", "centralized")
-#: Settings that say where, not what: left out of the cache key.
-_NOT_IN_KEY = ("run_dir", "out_dir", "resume")
 
 
 @dataclass(frozen=True)
@@ -84,7 +82,7 @@ class PretrainSpec:
             seed=0,
         )
         base = PRESETS[self.preset].apply(unset)
-        key = _digest([self.data_key, _settings_key(base), repr(base.model)])
+        key = _digest([self.data_key, base.training_key(), repr(base.model)])
         return dataclasses.replace(base, out_dir=str(root / f"{self.kind}-{key}"))
 
     @property
@@ -138,10 +136,6 @@ def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
     if not history or not history[-1].test_mse:
         raise ValueError(f"{settings.history_path}: no evaluated round")
     return dict(sorted(history[-1].test_mse.items()))
-
-
-def _settings_key(settings: FlSettings) -> dict:
-    return {k: v for k, v in dataclasses.asdict(settings).items() if k not in _NOT_IN_KEY}
 
 
 def _digest(parts: list) -> str:

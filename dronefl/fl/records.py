@@ -53,6 +53,10 @@ AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum")
 DRIFT_CORRECTIONS = ("none", "scaffold")
 
 
+#: The :class:`FlSettings` fields that say where a run reads and writes, not what it trains.
+WHERE_FIELDS: tuple[str, ...] = ("run_dir", "out_dir", "resume")
+
+
 class SettingsError(ValueError):
     """A run configuration value is missing, of the wrong type or out of range."""
 
@@ -234,6 +238,12 @@ class FlSettings:
     @property
     def history_path(self) -> Path:
         return Path(self.out_dir) / "history.json"
+
+    def training_key(self) -> dict[str, str | int | float | bool]:
+        """Every setting that decides what a run trains, i.e. all but where it reads and
+        writes and whether it resumes (:data:`WHERE_FIELDS`): two runs with equal keys train
+        the same weights."""
+        return {k: v for k, v in asdict(self).items() if k not in WHERE_FIELDS}
 
     def to_run_config(self) -> dict[str, str | int | float | bool]:
         """As a Flower run config (kebab-case keys, as in ``pyproject.toml``)."""

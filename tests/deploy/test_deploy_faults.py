@@ -17,6 +17,7 @@ from deploy_helpers import MARK, cli, free_port_block, survivors
 from dronefl.config import load_scenario
 from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import save_model
+from dronefl.deploy.processes import port_open, wait_for
 from dronefl.deploy.results import DeploymentMetrics
 from dronefl.models.model import build_model, predictor_config
 
@@ -120,10 +121,13 @@ def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
         env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip
     try:
+        # Once the SuperLink listens, 8 s leave the drone two tries of its SuperNode (the
+        # second after a 1 s pause), both refused.
+        wait_for(lambda: port_open("127.0.0.1", base + 2), 120, "the cloud's SuperLink")
         drone = subprocess.run(
             cli("drone", "--id", "2", "--model", str(model), "--tls-dir", str(intruder),
                 "--superlink", f"127.0.0.1:{base + 2}", "--runtime-port", str(base + 12),
-                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "25",
+                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "8",
                 "--data-dir", str(tmp_path / "disk")),
             env=run_env, capture_output=True, text=True, timeout=200,
         )  # fmt: skip

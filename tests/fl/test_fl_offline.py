@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from dronefl.experiments.fl_offline import OfflineConfig, OfflineResults, run_fl_offline
+from dronefl.fl.checkpoint import CheckpointError
 
 
 @pytest.mark.slow
@@ -56,3 +57,29 @@ def test_resuming_reuses_a_finished_local_run(tmp_path):
 
     assert checkpoint.stat().st_mtime_ns == written  # nothing was trained again
     assert again.seeds[0].final_test_mse == first.seeds[0].final_test_mse
+
+
+def test_resuming_refuses_a_folder_trained_with_other_settings(tmp_path):
+    # A finished `local` run with 1 local epoch per round; resuming the same --out with
+    # --epochs 2 must neither report the old result as the new setting nor continue it.
+    config = OfflineConfig("case1", tmp_path, rounds=1, seeds=(1,), duration=60.0, stride=5,
+                           methods=("local",), progress=False, epochs=1)  # fmt: skip
+    first = run_fl_offline(config).methods["local"]
+    folder = next(tmp_path.rglob("local/checkpoint.npz")).parent
+    kept = {p.name: p.read_bytes() for p in folder.iterdir()}
+
+    with pytest.raises(CheckpointError, match=r"settings.json: .*epochs 1 there, 2 now"):
+        run_fl_offline(replace(config, resume=True, epochs=2))
+
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == kept  # nothing lost
+    again = run_fl_offline(replace(config, resume=True)).methods["local"]  # same: reused
+    assert again.seeds[0].final_test_mse == first.seeds[0].final_test_mse
+    raw = json.loads((folder / "result.json").read_text())
+    assert raw["settings"]["epochs"] == 1 and raw["settings"]["method"] == "local"
+    # Another recording length: the results, and without them the kept recording, refuse.
+    longer = replace(config, resume=True, duration=30.0)
+    with pytest.raises(CheckpointError, match=r"results.json: results of another .* 60 s"):
+        run_fl_offline(longer)
+    (tmp_path / "results.json").unlink()
+    with pytest.raises(CheckpointError, match=r"summary.json: a recording of case1 seed 1, 60 s"):
+        run_fl_offline(longer)
