@@ -737,6 +737,9 @@ def replay(
     error_autocorrelation: Annotated[
         float | None, typer.Option(help="Lag-1 error autocorrelation (robust; default: tuned).")
     ] = None,
+    fading: Annotated[
+        bool, typer.Option(help="Inflate the prior of a track the drones find lagging (robust).")
+    ] = True,
     labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
     max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
@@ -768,6 +771,7 @@ def replay(
             gate=gate if gate > 0 else None,
             huber_threshold=huber_threshold,
             error_autocorrelation=error_autocorrelation,
+            fading=fading,
         )
         result = run(recorded, config, labels=labels, max_std=max_std)
     except (EpisodeError, ValueError) as exc:

@@ -119,12 +119,50 @@ class TargetReplay:
         return self.fused_mse_paired / self.best_drone_mse
 
 
+#: How the fused-track cells are split by the number of drones that predicted the target at
+#: the step before: two or more, exactly one, none (the track coasts).
+VIEWS: tuple[str, ...] = ("2+", "1", "0")
+
+
+@dataclass(frozen=True)
+class ViewsError:
+    """The fused track's cells (target, step) of one :data:`VIEWS` group: their mean squared
+    error ``mse`` (m^2), how many there are (``cells``) and their ``share`` of the episode's
+    summed squared error (so ``share`` over the groups adds up to 1)."""
+
+    mse: float
+    cells: int
+    share: float
+
+
+def views_errors(fused: np.ndarray, truth: np.ndarray, seen: np.ndarray) -> dict[str, ViewsError]:
+    """Split the fused track's squared error by views: ``fused`` and ``truth`` ``(K+1, N, 2)``
+    m, ``seen`` ``(K, M, N)`` whether drone i predicted target j at step k (the track at k + 1
+    fuses those predictions)."""
+    error = ((fused[1:] - truth[1:]) ** 2).sum(axis=-1)  # (K, N); NaN where no track
+    tracked = np.isfinite(error)
+    total = float(error[tracked].sum())
+    views = seen.sum(axis=1)
+    groups = {"2+": views >= 2, "1": views == 1, "0": views == 0}
+    out = {}
+    for name in VIEWS:
+        cells = error[tracked & groups[name]]
+        out[name] = ViewsError(
+            float(cells.mean()) if cells.size else float("nan"),
+            int(cells.size),
+            float(cells.sum()) / total if total > 0 else float("nan"),
+        )
+    return out
+
+
 @dataclass(frozen=True)
 class ReplayResult:
     """A replay of one episode: ``fusion`` (the settings), ``labels`` / ``max_std`` (m) the label
     source and its drop threshold, per-target results, and the whole episode's ``fused_mse`` /
     ``label_mse`` (m^2, mean over cells), ``measurements`` fused or gated, ``rejections``
-    (gated out) and ``resets``."""
+    (gated out) and ``resets``; ``by_views``: the fused track split by how many drones
+    predicted the target at the step before (:data:`VIEWS`; ``"0"`` is coasting on the motion
+    model alone), each :class:`ViewsError`."""
 
     episode: str
     scenario: str
@@ -138,6 +176,7 @@ class ReplayResult:
     measurements: int
     rejections: int
     resets: int
+    by_views: dict[str, ViewsError]
 
     @property
     def gated_fraction(self) -> float:
@@ -216,6 +255,7 @@ def replay(
         fuser.measurements,
         fuser.rejections,
         fuser.resets,
+        views_errors(fused, truth, seen),
     )
 
 
@@ -263,6 +303,12 @@ def format_result(result: ReplayResult) -> str:
         f"{result.label_mse:.2f} m² ({100 * result.label_kept:.0f} % kept, max std "
         f"{result.max_std} m); gated out {result.rejections} of {result.measurements} "
         f"measurements ({100 * result.gated_fraction:.1f} %), {result.resets} track resets.",
+        "Fused track by the drones that saw the target the step before: "
+        + "; ".join(
+            f"{name}: {v.mse:.2f} m² ({v.cells} cells, {100 * v.share:.0f} % of the error)"
+            for name, v in result.by_views.items()
+        )
+        + " (0: coasting).",
     ]
     return "\n".join(lines)
 

@@ -69,6 +69,30 @@ def test_replay_reports_each_drone_beside_the_fused_track(tmp_path):
     assert result.label_mse < result.fused_mse  # smoothed labels beat the filtered track
 
 
+def test_replay_splits_the_fused_error_by_the_drones_that_saw_the_target(tmp_path):
+    # Drone 1 loses target 3 for steps 50-59: its track coasts on the motion model there.
+    prediction, _ = _episode(tmp_path / "ep")
+    with np.load(tmp_path / "ep" / "episode.npz") as saved:
+        arrays = dict(saved)
+    arrays["prediction"][50:60, 0, 2] = np.nan
+    np.savez(tmp_path / "ep" / "episode.npz", **arrays)
+    episode = load_episode(tmp_path / "ep")
+
+    result = replay(episode, replay_config(episode.scenario, method="paper"))
+
+    views = result.by_views
+    # Target 2 is seen by drones 1 and 2 at all 150 steps, targets 1 and 3 by drone 1 alone but
+    # for the 10 blanked steps.
+    assert [views[v].cells for v in ("2+", "1", "0")] == [150, 290, 10]
+    assert sum(v.share for v in views.values()) == pytest.approx(1.0, rel=1e-12)
+    cells = sum(v.cells for v in views.values())
+    assert sum(v.mse * v.cells for v in views.values()) / cells == pytest.approx(
+        result.fused_mse, rel=1e-12
+    )
+    # Coasting 10 steps at constant velocity drifts further than a measured track.
+    assert views["0"].mse > views["1"].mse
+
+
 def test_replay_command_writes_json_and_markdown(tmp_path):
     _episode(tmp_path / "ep")
     runner = CliRunner()
