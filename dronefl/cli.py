@@ -728,9 +728,17 @@ def replay(
     acceleration_psd: Annotated[
         float | None, typer.Option(help="Process noise q, m^2/s^3 (default: the scenario's).")
     ] = None,
-    motion: Annotated[str, typer.Option(help="constant_velocity|coordinated_turn")] = (
-        "constant_velocity"
-    ),
+    motion: Annotated[
+        str | None,
+        typer.Option(
+            help="constant_velocity|mean_reverting|coordinated_turn (default: the closed "
+            "loop's for the scenario and method)."
+        ),
+    ] = None,
+    velocity_time_constant: Annotated[
+        float | None,
+        typer.Option(help="mean_reverting: s over which the velocity forgets itself."),
+    ] = None,
     adaptive: Annotated[bool, typer.Option(help="Adapt R per (drone, target).")] = True,
     gate: Annotated[float, typer.Option(help="Squared Mahalanobis gate; 0: no gating.")] = 9.21,
     huber_threshold: Annotated[float, typer.Option(help="Huber k^2 (robust).")] = 9.21,
@@ -766,6 +774,7 @@ def replay(
             recorded.scenario,
             method=method,
             motion=motion,
+            velocity_time_constant=velocity_time_constant,
             acceleration_psd=acceleration_psd,
             adaptive=adaptive,
             gate=gate if gate > 0 else None,

@@ -59,7 +59,9 @@ class FilterpyFusion:
         from filterpy.kalman import KalmanFilter
 
         self._kalman_filter = KalmanFilter
-        self.model = ConstantVelocity(config.acceleration_psd)
+        self.model = config.motion_model()  # a linear one: ConstantVelocity or a subclass
+        if not isinstance(self.model, ConstantVelocity):
+            raise ValueError(f"the filterpy reference needs a linear motion, not {config.motion}")
         self.f = self.model.transition_matrix(dt)
         self.q = self.model.process_noise(np.zeros(4), dt)
         self.h = self.model.measurement_matrix

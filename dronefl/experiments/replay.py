@@ -192,8 +192,9 @@ def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
     chosen = {k: v for k, v in overrides.items() if v is not None}
     if "gate" in overrides and overrides["gate"] is None:
         chosen["gate"] = None
+    method = chosen.pop("method", "robust")
     try:
-        return replace(fusion_config(scenario), **chosen)
+        return replace(fusion_config(scenario, method), **chosen)
     except TypeError as exc:
         raise ValueError(f"fusion settings: {exc}") from None
 

@@ -12,7 +12,12 @@ from dronefl.tracking.fusion import (
 )
 from dronefl.tracking.labels import LABEL_SOURCES, Labels, LabelSource, make_labels
 from dronefl.tracking.methods import FUSION_METHODS, FusionMethod
-from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
+from dronefl.tracking.models import (
+    ConstantVelocity,
+    CoordinatedTurn,
+    MeanRevertingVelocity,
+    MotionModel,
+)
 from dronefl.tracking.set_distances import SetDistances, set_distances
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
@@ -22,6 +27,7 @@ __all__ = [
     "LABEL_SOURCES",
     "AdaptiveMeasurementNoise",
     "ConstantVelocity",
+    "MeanRevertingVelocity",
     "CoordinatedTurn",
     "ExtendedKalmanFilter",
     "FusionConfig",

@@ -21,8 +21,16 @@ import numpy as np
 
 from dronefl.tracking.ekf import CHI2_2DOF_99, CHI2_2DOF_999, inv2_stack
 from dronefl.tracking.methods import FUSION_METHODS, MeasurementBatch
-from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MotionModel
+from dronefl.tracking.models import (
+    ConstantVelocity,
+    CoordinatedTurn,
+    MeanRevertingVelocity,
+    MotionModel,
+)
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
+
+#: The target motion models by name (:attr:`FusionConfig.motion`).
+MOTIONS: tuple[str, ...] = ("constant_velocity", "mean_reverting", "coordinated_turn")
 
 
 @dataclass(frozen=True)
@@ -31,7 +39,9 @@ class FusionConfig:
 
     ``method``: the fusion method, a key of :data:`~dronefl.tracking.methods.FUSION_METHODS`
     (``robust`` by default; ``paper`` is the paper's sequential adaptive EKF).
-    ``motion``: ``constant_velocity`` (x, y, vx, vy) or ``coordinated_turn`` (x, y, v, psi, omega).
+    ``motion``: one of :data:`MOTIONS`: ``constant_velocity`` (x, y, vx, vy),
+    ``mean_reverting`` (the same state, the velocity forgetting itself over
+    ``velocity_time_constant`` s) or ``coordinated_turn`` (x, y, v, psi, omega).
     ``acceleration_psd``: white-acceleration PSD q, m^2/s^3 (0.5 m/s vehicles turning at the
     headlands need ~0.01-0.1; the random-walk targets of Case 2 change velocity by ~1 m/s each
     second and need ~1). ``turn_rate_psd``: turn-acceleration PSD of the coordinated-turn model,
@@ -58,9 +68,10 @@ class FusionConfig:
     """
 
     method: str = "robust"
-    motion: Literal["constant_velocity", "coordinated_turn"] = "constant_velocity"
+    motion: Literal["constant_velocity", "mean_reverting", "coordinated_turn"] = "constant_velocity"
     acceleration_psd: float = 0.1
     turn_rate_psd: float = 0.01
+    velocity_time_constant: float = 1.0
     initial_noise_std: float = 1.0
     initial_speed_std: float = 1.0
     adaptive: bool = True
@@ -79,13 +90,12 @@ class FusionConfig:
             raise ValueError(
                 f"method: unknown fusion method {self.method!r} ({', '.join(FUSION_METHODS)})"
             )
-        if self.motion not in ("constant_velocity", "coordinated_turn"):
-            raise ValueError(
-                f"motion: unknown model {self.motion!r} (constant_velocity, coordinated_turn)"
-            )
+        if self.motion not in MOTIONS:
+            raise ValueError(f"motion: unknown model {self.motion!r} ({', '.join(MOTIONS)})")
         for name in (
             "acceleration_psd",
             "turn_rate_psd",
+            "velocity_time_constant",
             "initial_noise_std",
             "initial_speed_std",
             "noise_floor_std",
@@ -116,6 +126,8 @@ class FusionConfig:
         """The configured :class:`MotionModel`."""
         if self.motion == "coordinated_turn":
             return CoordinatedTurn(self.acceleration_psd, self.turn_rate_psd)
+        if self.motion == "mean_reverting":
+            return MeanRevertingVelocity(self.acceleration_psd, self.velocity_time_constant)
         return ConstantVelocity(self.acceleration_psd)
 
 

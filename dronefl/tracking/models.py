@@ -2,7 +2,7 @@
 
 A motion model gives the discrete-time transition ``x' = f(x, dt)``, its Jacobian
 ``F = df/dx``, the process noise ``Q(x, dt)`` and the way a new track is born from a position.
-Both models keep the ground position ``(x, y)`` (m) in the first two state components, so every
+Every model keeps the ground position ``(x, y)`` (m) in the first two state components, so every
 drone's predicted target position is the linear measurement ``z = H x`` with ``H = [I_2 0]``.
 """
 
@@ -108,6 +108,49 @@ class ConstantVelocity(MotionModel):
         cov[:2, :2] = position_covariance
         cov[2:, 2:] = speed_std**2 * np.eye(2)
         return mean, cov
+
+
+class MeanRevertingVelocity(ConstantVelocity):
+    r"""Integrated Ornstein-Uhlenbeck model, state ``x = (x, y, vx, vy)`` in m and m/s: on each
+    axis the velocity forgets itself over ``tau`` s, ``dv = -v / tau\, dt + \sqrt{q}\, dW``,
+    so a track that no drone sees slows down instead of carrying its last velocity on (a
+    vehicle whose velocity is re-drawn at random, as in Case 2). With ``a = 1 / tau`` and
+    ``e = exp(-a dt)``, per axis
+
+    .. math::
+        F = \begin{bmatrix} 1 & (1 - e)/a \\ 0 & e \end{bmatrix},\quad
+        Q = q \begin{bmatrix}
+            \frac{dt - 2(1 - e)/a + (1 - e^2)/(2a)}{a^2} & \frac{(1 - e)^2}{2a^2} \\
+            \frac{(1 - e)^2}{2a^2} & \frac{1 - e^2}{2a} \end{bmatrix}
+
+    (Stone Soup's ``OrnsteinUhlenbeck`` with damping ``a`` and diffusion ``q``; a test checks
+    it). The stationary speed std per axis is ``sqrt(q tau / 2)``; as ``tau -> inf`` the model
+    becomes :class:`ConstantVelocity` with the same ``q``.
+    """
+
+    def __init__(self, acceleration_psd: float = 0.1, velocity_time_constant: float = 1.0) -> None:
+        super().__init__(acceleration_psd)
+        tau = velocity_time_constant
+        if not (math.isfinite(tau) and tau > 0):
+            raise ValueError(f"velocity_time_constant must be > 0 s, got {tau}")
+        self.velocity_time_constant = float(tau)
+
+    def transition_matrix(self, dt: float) -> np.ndarray:
+        a = 1.0 / self.velocity_time_constant
+        e = math.exp(-a * dt)
+        f = np.eye(4)
+        f[0, 2] = f[1, 3] = -math.expm1(-a * dt) / a
+        f[2, 2] = f[3, 3] = e
+        return f
+
+    def process_noise(self, x: np.ndarray, dt: float) -> np.ndarray:
+        a, q = 1.0 / self.velocity_time_constant, self.acceleration_psd
+        one_e = -math.expm1(-a * dt)  # 1 - e, without cancellation for small a dt
+        one_e2 = -math.expm1(-2.0 * a * dt)  # 1 - e^2
+        p = q * (dt - 2.0 * one_e / a + one_e2 / (2.0 * a)) / a**2
+        c = q * one_e**2 / (2.0 * a**2)
+        v = q * one_e2 / (2.0 * a)
+        return np.array([[p, 0.0, c, 0.0], [0.0, p, 0.0, c], [c, 0.0, v, 0.0], [0.0, c, 0.0, v]])
 
 
 class CoordinatedTurn(MotionModel):

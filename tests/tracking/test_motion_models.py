@@ -3,7 +3,10 @@
 import numpy as np
 import pytest
 
-from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn
+from dronefl.config import load_scenario
+from dronefl.experiments.track import RANDOM_WALK_VELOCITY_TIME_CONSTANT, fusion_config
+from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MeanRevertingVelocity
 
 
 def test_constant_velocity_matrices_match_the_closed_form():
@@ -44,6 +47,61 @@ def test_constant_velocity_matches_stone_soup():
     x = np.array([1.0, 2.0, 0.5, -0.5])
     np.testing.assert_allclose(model.jacobian(x, dt), f_ss[np.ix_(order, order)], atol=1e-15)
     np.testing.assert_allclose(model.process_noise(x, dt), q_ss[np.ix_(order, order)], atol=1e-15)
+
+
+@pytest.mark.parametrize(("tau", "dt"), [(0.25, 0.2), (2.0, 0.2), (0.5, 3.0)])
+def test_mean_reverting_velocity_matches_stone_soups_ornstein_uhlenbeck(tau, dt):
+    from datetime import timedelta
+
+    stonesoup = pytest.importorskip("stonesoup.models.transition.linear")
+    axis = stonesoup.OrnsteinUhlenbeck(noise_diff_coeff=0.7, damping_coeff=1.0 / tau)
+    ss_model = stonesoup.CombinedLinearGaussianTransitionModel([axis, axis])
+    model = MeanRevertingVelocity(acceleration_psd=0.7, velocity_time_constant=tau)
+    order = [0, 2, 1, 3]  # Stone Soup's (x, vx, y, vy) -> our (x, y, vx, vy)
+    interval = timedelta(seconds=dt)
+    x = np.array([1.0, 2.0, 0.5, -0.5])
+
+    f_ss = ss_model.matrix(time_interval=interval)[np.ix_(order, order)]
+    q_ss = ss_model.covar(time_interval=interval)[np.ix_(order, order)]
+
+    np.testing.assert_allclose(model.jacobian(x, dt), f_ss, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(model.process_noise(x, dt), q_ss, rtol=1e-10, atol=1e-15)
+
+
+def test_mean_reverting_velocity_becomes_constant_velocity_for_a_long_time_constant():
+    # tau = 1e4 s: every term differs from constant velocity's by about dt / tau = 2e-5.
+    slow, cv = MeanRevertingVelocity(1.0, velocity_time_constant=1e4), ConstantVelocity(1.0)
+    x = np.array([0.0, 0.0, 1.0, 1.0])
+    np.testing.assert_allclose(slow.jacobian(x, 0.2), cv.jacobian(x, 0.2), atol=1e-4)
+    np.testing.assert_allclose(slow.process_noise(x, 0.2), cv.process_noise(x, 0.2), rtol=1e-4)
+    with pytest.raises(ValueError, match="velocity_time_constant"):
+        MeanRevertingVelocity(1.0, velocity_time_constant=0.0)
+
+
+def test_a_coasting_mean_reverting_track_slows_down_and_a_constant_velocity_one_does_not():
+    # A target driving east at 2 m/s, seen by one drone for 10 s, then by no one for 2 s.
+    speeds = {}
+    for motion in ("constant_velocity", "mean_reverting"):
+        config = FusionConfig(method="paper", motion=motion, velocity_time_constant=0.25)
+        fuser = Fuser([1], [1], config)
+        for k in range(51):
+            fuser.update(0.2 * k, [PositionMeasurement(1, 1, np.array([0.4 * k, 0.0]))])
+        track = fuser.update(12.0, [])[1]
+        speeds[motion] = float(np.linalg.norm(track.velocity))
+    assert speeds["constant_velocity"] > 1.5  # carries the last velocity on
+    assert speeds["mean_reverting"] < 1e-3  # 2 s = 8 time constants: e^-8 of it is left
+
+
+def test_the_closed_loop_tracks_random_walk_targets_with_a_forgetting_velocity():
+    # Case 2's vehicles walk at random; Cases 1 and 3 drive at constant speed.
+    robust = fusion_config(load_scenario("case2"))
+    assert (robust.motion, robust.acceleration_psd) == ("mean_reverting", 1.0)
+    assert robust.velocity_time_constant == RANDOM_WALK_VELOCITY_TIME_CONSTANT
+    paper = fusion_config(load_scenario("case2"), "paper")  # the paper's EKF keeps CV
+    assert (paper.motion, paper.acceleration_psd) == ("constant_velocity", 1.0)
+    for case in ("case1", "case3"):
+        config = fusion_config(load_scenario(case))
+        assert (config.motion, config.acceleration_psd) == ("constant_velocity", 0.1)
 
 
 def _numerical_jacobian(model, x, dt, step=1e-6):
