@@ -810,7 +810,7 @@ ModelOption = Annotated[Path, typer.Option("--model", help="Model weights file (
 def _deploy_errors() -> Iterator[None]:
     """Run a deployment command: SIGTERM ends it like Ctrl-C (so that it stops its children);
     a bad setup (code 2) or a failure at run time (code 1) is one line, never a traceback."""
-    from dronefl.deploy.cloud import CloudError
+    from dronefl.deploy import CloudError
     from dronefl.deploy.link import LinkError
     from dronefl.deploy.processes import DeployError
     from dronefl.deploy.world import WorldError
@@ -997,7 +997,6 @@ def deploy_up(
     Example: dronefl deploy up --scenario case1 --duration 120 --fl-period 40 --out runs/dep
     """
     from dronefl.deploy.launcher import DeployConfig, run_deploy
-    from dronefl.report.tables import format_metrics
 
     check_choice(env, ENVIRONMENTS, "--env")
     with _deploy_errors():
@@ -1020,6 +1019,8 @@ def deploy_up(
             label_drones=label_drones,
         )
         metrics = run_deploy(config)
+    from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)
+
     typer.echo(format_metrics(metrics))
     typer.echo(f"wrote {out}/metrics.json and {out}/logs/ ({len(metrics.fl_rounds)} FL rounds)")
 

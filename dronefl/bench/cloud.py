@@ -24,10 +24,9 @@ import numpy as np
 from dronefl.bench.results import Benchmarks
 from dronefl.bench.timing import latency, with_reference
 from dronefl.config import Scenario
-from dronefl.experiments.track import fusion_config
 from dronefl.planning import DroneFLPlanner, double_integrator_step
 from dronefl.sim.world import drone_start_positions
-from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
 from dronefl.tracking.models import ConstantVelocity
 from dronefl.types import DroneState
 

@@ -23,3 +23,10 @@ predictions up to a wall-clock deadline, fuses what arrived (a late drone is sil
 step), plans and sends each drone its control, which the drone hands to its autopilot (the
 world); after an FL round, if one is due, the cloud releases the step and the world moves on.
 """
+
+#: The closed-loop methods a deployment runs (``--method``): FL every round, or never.
+DEPLOY_METHODS = ("dronefl", "fixed")
+
+
+class CloudError(RuntimeError):
+    """The cloud could not run the episode (a peer missing, a round impossible)."""

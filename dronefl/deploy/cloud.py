@@ -36,6 +36,7 @@ from flwr.serverapp import Grid, ServerApp
 
 from dronefl.accounting import DIRECTIONS, ByteCounter
 from dronefl.config import Scenario, load_scenario
+from dronefl.deploy import DEPLOY_METHODS, CloudError
 from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.clientapp import load_model
 from dronefl.deploy.grid import DroneGrid
@@ -52,25 +53,19 @@ from dronefl.deploy.link import (
 )
 from dronefl.deploy.messages import LabelsMessage, TelemetryMessage, encode_release
 from dronefl.deploy.results import CloudLog, DeployedRound, TrafficCount
-from dronefl.experiments.track import fusion_config
 from dronefl.fl.records import ARRAYS_KEY, ROUND_KEY, FlSettings, RoundRecord
 from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
-from dronefl.tracking import Fuser, PositionMeasurement, make_labels
+from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
 from dronefl.tracking.labels import LABEL_DRONES, drone_labels
 from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
 #: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
 SUPERNODE_JOIN_S = 30.0
 
-DEPLOY_METHODS = ("dronefl", "fixed")
 _PREFIX = "deploy-"
-
-
-class CloudError(RuntimeError):
-    """The cloud could not run the episode (a peer missing, a round impossible)."""
 
 
 @dataclass(frozen=True)

@@ -24,9 +24,8 @@ from pathlib import Path
 import psutil
 
 from dronefl.config import Scenario, load_scenario
+from dronefl.deploy import DEPLOY_METHODS
 from dronefl.deploy.certs import CertificateFolder, make_certificates
-from dronefl.deploy.clientapp import save_model
-from dronefl.deploy.cloud import DEPLOY_METHODS
 from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
@@ -85,6 +84,7 @@ class DeployConfig:
 def pretrained_model(config: DeployConfig, scenario: Scenario, out: Path) -> Path:
     """The crop-field pretrained DroneFL model (:mod:`dronefl.experiments.pretrain`, the one
     ``dronefl track`` starts from) as a model file every process loads by path."""
+    from dronefl.deploy.clientapp import save_model
     from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 
     state = pretrained_state(PretrainSpec(scenario, "dronefl"), config.pretrained, progress=False)

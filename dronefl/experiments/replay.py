@@ -19,7 +19,7 @@ import numpy as np
 
 from dronefl.config import Scenario, load_scenario
 from dronefl.io import atomic_write_json, atomic_write_text
-from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
 
 
@@ -187,8 +187,6 @@ class ReplayResult:
 def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
     """The closed loop's fusion settings for ``scenario`` with ``overrides`` (``None`` values
     keep the default) applied; raises ``ValueError`` naming a bad field."""
-    from dronefl.experiments.track import fusion_config
-
     chosen = {k: v for k, v in overrides.items() if v is not None}
     if "gate" in overrides and overrides["gate"] is None:
         chosen["gate"] = None

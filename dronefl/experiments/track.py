@@ -71,9 +71,9 @@ from dronefl.tracking import (
     FUSION_METHODS,
     LABEL_SOURCES,
     Fuser,
-    FusionConfig,
     PositionMeasurement,
     Track,
+    fusion_config,
     make_labels,
     set_distances,
 )
@@ -193,34 +193,6 @@ class TrackConfig:
         """The settings that change the episode's results (:meth:`describe` without
         :data:`NOT_SETTINGS`); with the scenario's content hash they identify an episode."""
         return {k: v for k, v in self.describe().items() if k not in NOT_SETTINGS}
-
-
-#: The velocity time constant (s) of the ``robust`` fusion's mean-reverting motion model for
-#: random-walk targets, chosen by replay on the Case 2 tuning episodes (seeds 10 and 11) from
-#: 0.1, 0.25, 0.5, 1, 2 and 5 s: the best smoothed labels, and fused tracks within 10 % of
-#: the best.
-RANDOM_WALK_VELOCITY_TIME_CONSTANT = 0.25
-
-
-def fusion_config(scenario: Scenario, method: str = "robust") -> FusionConfig:
-    """EKF settings for the scenario and fusion ``method``. Random-walk targets change
-    velocity by about 1 m/s every second: they need a larger process noise than constant-speed
-    ones (q = 1 instead of 0.1 m^2/s^3), and the ``robust`` fusion tracks them with a velocity
-    that forgets itself over :data:`RANDOM_WALK_VELOCITY_TIME_CONSTANT` s
-    (:class:`~dronefl.tracking.MeanRevertingVelocity`), so that a track no drone sees stops
-    instead of carrying the velocity it had at the edge of the view on. The ``paper`` fusion
-    keeps the constant-velocity model."""
-    random_walk = any(t.motion == "random_walk" for t in scenario.targets)
-    if not random_walk:
-        return FusionConfig(method=method, acceleration_psd=0.1)
-    if method != "robust":
-        return FusionConfig(method=method, acceleration_psd=1.0)
-    return FusionConfig(
-        method=method,
-        acceleration_psd=1.0,
-        motion="mean_reverting",
-        velocity_time_constant=RANDOM_WALK_VELOCITY_TIME_CONSTANT,
-    )
 
 
 def scenario_fuser(scenario: Scenario, method: str) -> Fuser:

@@ -43,6 +43,7 @@ from dronefl.fl.records import (
     to_arrays,
     to_state,
 )
+from dronefl.fl.watchdog import exit_with_parent
 from dronefl.io import atomic_savez
 from dronefl.models.model import TrajectoryTransformer, build_model
 from dronefl.models.train import (
@@ -193,7 +194,9 @@ def _round_context(
     msg: Message, context: Context, settings: FlSettings
 ) -> tuple[FlSettings, TrainInstructions, int]:
     """The cloud's instructions for this round, the settings with the round's data folder
-    (when the cloud named one) and this node's drone id; one torch thread per drone."""
+    (when the cloud named one) and this node's drone id; one torch thread per drone, and
+    the process ends if the one that started it dies (:mod:`dronefl.fl.watchdog`)."""
+    exit_with_parent()
     torch.set_num_threads(1)
     instructions = TrainInstructions.from_config(msg.content[CONFIG_KEY])
     if instructions.run_dir is not None:

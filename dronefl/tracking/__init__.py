@@ -4,11 +4,13 @@ pseudo-labels and track metrics (SPEC §6, §8)."""
 from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
 from dronefl.tracking.ekf import CHI2_2DOF_99, ExtendedKalmanFilter, UpdateDiagnostics
 from dronefl.tracking.fusion import (
+    RANDOM_WALK_VELOCITY_TIME_CONSTANT,
     Fuser,
     FusionConfig,
     PositionMeasurement,
     Track,
     TrackForecast,
+    fusion_config,
 )
 from dronefl.tracking.labels import LABEL_SOURCES, Labels, LabelSource, make_labels
 from dronefl.tracking.methods import FUSION_METHODS, FusionMethod
@@ -25,6 +27,7 @@ __all__ = [
     "CHI2_2DOF_99",
     "FUSION_METHODS",
     "LABEL_SOURCES",
+    "RANDOM_WALK_VELOCITY_TIME_CONSTANT",
     "AdaptiveMeasurementNoise",
     "ConstantVelocity",
     "MeanRevertingVelocity",
@@ -43,6 +46,7 @@ __all__ = [
     "TrackHistory",
     "SetDistances",
     "UpdateDiagnostics",
+    "fusion_config",
     "make_labels",
     "rts_smooth",
     "set_distances",

@@ -98,7 +98,7 @@ def test_certificate_of_another_ca_never_reaches_the_world(tmp_path, run_env, mo
     try:
         command = cli(
             "drone", "--id", "1", "--model", str(model_file), "--tls-dir", str(theirs.folder),
-            "--superlink", f"127.0.0.1:{port + 2}", "--start-timeout", "8",
+            "--superlink", f"127.0.0.1:{port + 2}", "--start-timeout", "4",
             "--connect", f"127.0.0.1:{port},127.0.0.1:{port + 1}",
             "--data-dir", str(tmp_path / "disk"),
         )  # fmt: skip

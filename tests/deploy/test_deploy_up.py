@@ -27,7 +27,7 @@ def test_deploy_up_plays_a_round_through_the_superlink_and_leaves_nothing(
     out = tmp_path / "deploy"
     command = cli(
         "deploy", "up", "--scenario", "case2", "--env", "crop_field", "--seed", "3",
-        "--duration", "40", "--fl-period", "20", "--epochs", "1", "--label-drones", "lower",
+        "--duration", "30", "--fl-period", "15", "--epochs", "1", "--label-drones", "lower",
         "--base-port", str(free_port_block()), "--out", str(out), "--pretrained", str(pretrained),
     )  # fmt: skip
     started = time.monotonic()
@@ -38,11 +38,11 @@ def test_deploy_up_plays_a_round_through_the_superlink_and_leaves_nothing(
     metrics = DeploymentMetrics.load(out / "metrics.json")
     assert metrics.engine == "deployment"
     assert metrics.processes >= 7  # world, cloud, SuperLink, 3 drones, 3 SuperNodes, ...
-    # 40 s with a round every 20 s: one round, at t = 20 s. Drone 3 flies lowest (25 m): with
+    # 30 s with a round every 15 s: one round, at t = 15 s. Drone 3 flies lowest (25 m): with
     # --label-drones lower none of its labels holds a lower view, so it sits the round out
     # (Flower: no training examples) and never loads the round's model.
     (round_,) = metrics.fl_rounds
-    assert round_.t == 20.0 and round_.participants == (1, 2) and round_.missing == (3,)
+    assert round_.t == 15.0 and round_.participants == (1, 2) and round_.missing == (3,)
     assert "drone 3: no training examples" in round_.rejected
     drones = out / "drones"
     assert np.isnan(PseudoLabels.load(drones / "drone-3" / "tracks.npz").position).all()
@@ -56,9 +56,9 @@ def test_deploy_up_plays_a_round_through_the_superlink_and_leaves_nothing(
     assert metrics.missing_controls == {1: 0, 2: 0, 3: 0}
     assert metrics.tracking.prediction_coverage > 0.5
     rate = metrics.communication.kb_per_s
-    # 200 control messages of 14 B in 40 s; drones 1-2 get the weights twice (round + new
+    # 150 control messages of 14 B in 30 s; drones 1-2 get the weights twice (round + new
     # model), drone 3 once (the round's message only).
-    assert rate(1, "down", "control") == pytest.approx(200 * 14 / 1000 / 40)
+    assert rate(1, "down", "control") == pytest.approx(150 * 14 / 1000 / 30)
     assert rate(1, "down", "weights") > rate(3, "down", "weights") > 0
     assert rate(1, "up", "weights") > 0
     names = {p.name for p in (out / "logs").glob("*.log")}

@@ -9,6 +9,7 @@ import math
 import pytest
 
 from dronefl.fl import TrainingError
+from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.fl.records import FlSettings
 from dronefl.fl.simulation import run_federated
 
@@ -22,18 +23,31 @@ def _evaluated(history):
 
 
 @pytest.mark.slow
-def test_fedprox_round_survives_a_crash_and_an_absurd_update(case1_run, tmp_path):
-    settings = FlSettings(str(case1_run), str(tmp_path), method="fedprox", rounds=4, epochs=1,
-                          stride=5, faults="2:2:raise,3:1:absurd")  # fmt: skip
-    history = run_federated(settings)
-    assert [list(h.rejected) for h in history] == [
+def test_fedprox_rounds_survive_a_crash_and_an_absurd_update_and_one_without_any_fails(
+    case1_run, tmp_path
+):
+    # Round 2: drone 2 crashes; round 3: drone 1 sends absurd weights; round 5: both crash, so
+    # the rounds finish but the model missed a whole round, and the run fails.
+    faults = "2:2:raise,3:1:absurd,5:1:raise,5:2:raise"
+    settings = FlSettings(str(case1_run), str(tmp_path), method="fedprox", rounds=5, epochs=1,
+                          stride=5, faults=faults)  # fmt: skip
+    with pytest.raises(TrainingError, match="round 5 accepted no update") as failure:
+        run_federated(settings)
+    assert "drone 1: error (drone 1: injected fault in round 5)" in str(failure.value)
+    assert "drone 2: error (drone 2: injected fault in round 5)" in str(failure.value)
+    history = load_checkpoint(settings.checkpoint_path, settings.history_path, "fedprox").history
+    assert [sorted(h.rejected) for h in history] == [  # in the order the replies came
         [],
         ["drone 2: error (drone 2: injected fault in round 2)"],
         ["drone 1: absurd weights (|w| > 10000)"],
         [],
+        [
+            "drone 1: error (drone 1: injected fault in round 5)",
+            "drone 2: error (drone 2: injected fault in round 5)",
+        ],
     ]
-    assert _trained(history) == [[1, 2], [1], [2], [1, 2]]  # back in the round after
-    assert _evaluated(history) == [[1, 2]] * 4  # a rejected update does not stop evaluation
+    assert _trained(history) == [[1, 2], [1], [2], [1, 2], []]  # back in the round after
+    assert _evaluated(history) == [[1, 2]] * 5  # a rejected update does not stop evaluation
     assert all(math.isfinite(h.mean_test_mse) for h in history)
 
 
@@ -54,14 +68,3 @@ def test_dronefl_round_survives_a_silent_drone_and_failed_evaluations(case1_run,
     assert _evaluated(history) == [[1, 2], [1, 2], [2], [1]]
     # The mean test MSE is over the drones that reported.
     assert history[3].mean_test_mse == history[3].test_mse[1]
-
-
-@pytest.mark.slow
-def test_a_round_without_any_accepted_update_fails_the_run(case1_run, tmp_path):
-    # Both drones crash in round 2: the rounds finish, but the model missed a whole round.
-    settings = FlSettings(str(case1_run), str(tmp_path), method="dronefl", rounds=3, epochs=1,
-                          stride=5, faults="2:1:raise,2:2:raise")  # fmt: skip
-    with pytest.raises(TrainingError, match="round 2 accepted no update") as failure:
-        run_federated(settings)
-    assert "drone 1: error (drone 1: injected fault in round 2)" in str(failure.value)
-    assert "drone 2: error (drone 2: injected fault in round 2)" in str(failure.value)

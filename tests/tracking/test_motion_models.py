@@ -4,8 +4,13 @@ import numpy as np
 import pytest
 
 from dronefl.config import load_scenario
-from dronefl.experiments.track import RANDOM_WALK_VELOCITY_TIME_CONSTANT, fusion_config
-from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.tracking import (
+    RANDOM_WALK_VELOCITY_TIME_CONSTANT,
+    Fuser,
+    FusionConfig,
+    PositionMeasurement,
+    fusion_config,
+)
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MeanRevertingVelocity
 
 
