@@ -31,6 +31,13 @@ os.environ.setdefault("RAY_DEDUP_LOGS", "0")
 os.environ.setdefault("DRONEFL_SIM_WORKERS", "1")
 
 
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: one worker more than the cores. The slow tests wait part of their time on
+    process start-ups and Ray's start and teardown, so one worker per core leaves the CPU idle
+    (measured on 2 cores: 86 % busy with 2 workers, 319 s; 94 % with 3, 298 s)."""
+    return (os.cpu_count() or 1) + 1
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Files with a ``slow`` test run first (in collection order, then the rest): with
     ``make test``'s ``-n auto --dist loadfile --no-loadscope-reorder`` their process start-ups
