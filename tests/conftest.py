@@ -64,6 +64,23 @@ def quick_pretrained(tmp_path_factory):
     return folder
 
 
+@pytest.fixture
+def quick_pretrained_case2(quick_pretrained, tmp_path) -> Path:
+    """``quick_pretrained``'s model as Case 2's pretrained DroneFL model (the model is the same
+    for any scenario), in ``tmp_path / "pretrained"``."""
+    from dronefl.config import load_scenario
+    from dronefl.experiments.pretrain import PretrainSpec
+    from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+
+    case1, case2 = (
+        PretrainSpec(load_scenario(name), "dronefl").settings(folder)
+        for name, folder in (("case1", quick_pretrained), ("case2", tmp_path / "pretrained"))
+    )
+    state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
+    save_checkpoint(case2.checkpoint_path, case2.history_path, Checkpoint("dronefl", 20, state, []))
+    return tmp_path / "pretrained"
+
+
 def _train_quick_model(folder: Path) -> None:
     import torch
 

@@ -21,8 +21,6 @@ from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import save_model
 from dronefl.deploy.processes import port_open, wait_for
 from dronefl.deploy.results import DeploymentMetrics
-from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 
@@ -45,17 +43,15 @@ def _wait_for_line(path, text: str, launcher: subprocess.Popen, seconds: float) 
 
 @pytest.mark.timeout(600)
 @pytest.mark.slow
-def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(tmp_path, run_env, quick_pretrained):
-    # Case 2's quick model: the Case 1 one (the model is the same for any scenario).
-    pretrained = tmp_path / "pretrained"
-    state = load_checkpoint(*_paths("case1", quick_pretrained), "dronefl").state
-    save_checkpoint(*_paths("case2", pretrained), Checkpoint("dronefl", 20, state, []))
+def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
+    tmp_path, run_env, quick_pretrained_case2
+):
     out = tmp_path / "deploy"
     command = cli(
         "deploy", "up", "--scenario", "case2", "--env", "crop_field", "--seed", "3",
         "--duration", "60", "--fl-period", "25", "--epochs", "1", "--label-drones", "lower",
-        "--base-port", str(free_port_block()), "--out", str(out), "--pretrained", str(pretrained),
-        "--restart-drones",
+        "--base-port", str(free_port_block()), "--out", str(out),
+        "--pretrained", str(quick_pretrained_case2), "--restart-drones",
     )  # fmt: skip
     said = tmp_path / "launcher.out"
     with said.open("w") as output:
@@ -128,11 +124,6 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(tmp_path, run_env
     assert rate(1, "up", "weights") > 0
     names = {p.name for p in (out / "logs").glob("*.log")}
     assert {"cloud.log", "world.log", "drone-1.log", "drone-3.log"} <= names
-
-
-def _paths(scenario: str, folder):
-    settings = PretrainSpec(load_scenario(scenario), "dronefl").settings(folder)
-    return settings.checkpoint_path, settings.history_path
 
 
 @pytest.mark.timeout(300)

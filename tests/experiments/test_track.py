@@ -184,15 +184,10 @@ def test_the_episode_frees_its_renderer_at_the_end(quick_pretrained, tmp_path):
 
 
 @pytest.mark.slow
-def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained, tmp_path):
-    # Case 2's quick model: the Case 1 one (the model is the same for any scenario).
-    pretrained = tmp_path / "pretrained"
-    case1 = _paths(PretrainSpec(load_scenario("case1"), "dronefl"), quick_pretrained)
-    state = load_checkpoint(*case1, "dronefl").state
-    save_checkpoint(
-        *_paths(PretrainSpec(load_scenario("case2"), "dronefl"), pretrained),
-        Checkpoint("dronefl", 20, state, []),
-    )
+def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained_case2, tmp_path):
+    pretrained = quick_pretrained_case2
+    case2 = PretrainSpec(load_scenario("case2"), "dronefl").settings(pretrained)
+    state = load_checkpoint(case2.checkpoint_path, case2.history_path, "dronefl").state
     config = TrackConfig(
         scenario=load_scenario("case2"), method="dronefl", seed=3, duration=24.0,
         environment="crop_field", fl_period=20.0, epochs=1, label_drones="lower",
@@ -211,11 +206,6 @@ def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained, tmp_path):
     for key, value in state.items():
         assert torch.equal(predictors[3][key], value), key
     assert not torch.equal(predictors[1]["embed.weight"], state["embed.weight"])
-
-
-def _paths(spec: PretrainSpec, folder):
-    settings = spec.settings(folder)
-    return settings.checkpoint_path, settings.history_path
 
 
 def test_the_preset_sets_the_episode_models_and_their_updates(tmp_path):
