@@ -523,6 +523,13 @@ LabelDronesOption = Annotated[
         "lower (a lower drone did).",
     ),
 ]
+DeshrinkOption = Annotated[
+    bool,
+    typer.Option(
+        "--deshrink-labels",
+        help="Push each drone's labels away from it by the pull its predictions show.",
+    ),
+]
 PretrainRoundsOption = Annotated[
     int, typer.Option("--pretrain-rounds", help="FL rounds of the crop-field pretraining.")
 ]
@@ -551,6 +558,7 @@ def track(
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: LabelsOption = "smoothed",
     label_drones: LabelDronesOption = "all",
+    deshrink_labels: DeshrinkOption = False,
     fusion: FusionOption = "robust",
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = "ours",
@@ -587,6 +595,7 @@ def track(
         fl_period=fl_period,
         labels=labels,
         label_drones=label_drones,
+        deshrink_labels=deshrink_labels,
         fusion=fusion,
         past_steps=past_steps,
         preset=preset,
@@ -640,6 +649,7 @@ def table1(
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: LabelsOption = "smoothed",
     label_drones: LabelDronesOption = "all",
+    deshrink_labels: DeshrinkOption = False,
     fusion: FusionOption = "robust",
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
@@ -664,7 +674,8 @@ def table1(
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
         scenario=specs[0], duration=duration, fl_period=fl_period, labels=labels,
-        label_drones=label_drones, fusion=fusion, preset=preset, epochs=epochs, lr=lr,
+        label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
+        preset=preset, epochs=epochs, lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,

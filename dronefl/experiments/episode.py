@@ -114,7 +114,8 @@ class ClosedLoopRound:
     """One model update of the closed loop: played at simulated time ``t`` (s), taking
     ``seconds`` of wall time; ``train_loss`` per drone (``0`` = the cloud) in m^2 (scaled
     MSE of the training windows); ``rejected`` the drones whose update was left out and why;
-    ``weight_bytes`` per drone, down and up."""
+    ``weight_bytes`` per drone, down and up; ``pull`` the predictions' pull toward their own
+    drone so far (:func:`dronefl.tracking.labels.estimate_pull`; ``None`` where not measured)."""
 
     round: int
     t: float
@@ -123,6 +124,7 @@ class ClosedLoopRound:
     rejected: tuple[str, ...] = ()
     weight_bytes_down: dict[int, int] = field(default_factory=dict)
     weight_bytes_up: dict[int, int] = field(default_factory=dict)
+    pull: float | None = None
 
 
 @dataclass(frozen=True)

@@ -77,7 +77,12 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.labels import LABEL_DRONES, drone_labels
+from dronefl.tracking.labels import (
+    LABEL_DRONES,
+    deshrink_labels,
+    drone_labels,
+    estimate_pull,
+)
 from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -95,7 +100,9 @@ class TrackConfig:
     (:data:`dronefl.tracking.LABEL_SOURCES`: ``smoothed`` fused tracks, the default;
     ``filtered``, the paper's; ``ground_truth``, an ablation) and ``label_drones`` which
     drone learns from which label (:data:`dronefl.tracking.labels.LABEL_DRONES`: ``all``,
-    the paper; ``others``; ``lower``); ``fusion`` the cloud's fusion method
+    the paper; ``others``; ``lower``); ``deshrink_labels`` pushes each drone's labels away
+    from it by the pull its predictions show (:func:`dronefl.tracking.labels.deshrink_labels`;
+    off: the labels as made); ``fusion`` the cloud's fusion method
     (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``);
     ``preset`` the training setting (a key of :data:`dronefl.fl.records.PRESETS`: the model
     options, batch and optimiser of the pretraining and of every update); ``epochs`` local
@@ -119,6 +126,7 @@ class TrackConfig:
     fl_period: float = 100.0
     labels: str = "smoothed"
     label_drones: str = "all"
+    deshrink_labels: bool = False
     fusion: str = "robust"
     preset: str = "ours"
     epochs: int | None = None
@@ -377,7 +385,7 @@ class ClosedLoop:
         if not self.period_ended(k):
             return
         started = time.perf_counter()
-        labels = self._labels(k + 1)
+        labels, pull = self._labels(k + 1)
         if not np.isfinite(labels).any():  # no drone has a label (see --label-drones)
             return
         update = self.learner.update(self.records, labels, len(self.rounds) + 1)
@@ -403,6 +411,7 @@ class ClosedLoop:
                 rejected=update.rejected,
                 weight_bytes_down=update.weight_bytes_down,
                 weight_bytes_up=update.weight_bytes_up,
+                pull=pull,
             )
         )
         self.log.fl_steps.append(k + 1)
@@ -467,17 +476,22 @@ class ClosedLoop:
             self.log.track_position[k + 1, self.column[target_id]] = track.position
             self.log.trace[k, self.column[target_id]] = np.trace(track.covariance)
 
-    def _labels(self, steps: int) -> np.ndarray:
+    def _labels(self, steps: int) -> tuple[np.ndarray, float]:
         """Each drone's training labels ``(M, steps, N, 2)`` m for the first ``steps`` steps,
         NaN where it has none (:func:`dronefl.tracking.make_labels`: smoothed or filtered fused
         tracks, or the truth as an ablation; :func:`dronefl.tracking.labels.label_drones`: which
-        drone learns from which)."""
+        drone learns from which; de-shrunk with ``--deshrink-labels``), and the pull of the
+        predictions so far (:func:`dronefl.tracking.labels.estimate_pull`)."""
         truth = self.log.target_position[:steps]
         labels = make_labels(self.config.labels, self.fuser, self.log.t[:steps], truth=truth)
         altitudes = [d.altitude for d in self.scenario.drones]
-        return drone_labels(
+        own = drone_labels(
             labels.position, self.log.prediction, altitudes, self.config.label_drones
         )
+        pull = estimate_pull(self.log.prediction[:steps], self.log.drone_position)
+        if self.config.deshrink_labels:
+            own = deshrink_labels(own, self.log.drone_position, pull)
+        return own, pull
 
 
 def _fly(

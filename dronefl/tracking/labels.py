@@ -186,6 +186,55 @@ def drone_labels(
     return np.where(mask[..., None], position[None], np.nan)
 
 
+def estimate_pull(prediction: np.ndarray, drone_position: np.ndarray) -> float:
+    """How far the drones' predictions are pulled toward their own drone, from their
+    disagreement alone (no truth): the least-squares ``a`` of
+
+        z_i - z_l = a (d_i - d_l) + noise,
+
+    over every step ``k`` and pair of drones ``i != l`` that both predicted target ``j``, which
+    holds when each prediction is ``z_i = x - a (x - d_i)`` plus noise (``x`` the target,
+    ``d_i`` its drone). ``prediction`` ``(K, M, N, 2)`` m (NaN where none), the prediction made
+    at step ``k``; ``drone_position`` ``(>= K, M, 2)`` m, where each drone was at step ``k``.
+    Returns ``a`` clipped to ``[0, 0.5]`` (0 without a pair): the pull measured here is toward
+    the drone, and 0.5 bounds the de-shrinking gain ``1 / (1 - a)`` at 2.
+    """
+    prediction = np.asarray(prediction, dtype=float)
+    steps, n_drones = prediction.shape[:2]
+    drone_position = np.asarray(drone_position, dtype=float)[:steps]
+    if drone_position.shape != (steps, n_drones, 2):
+        raise ValueError(
+            f"drone_position: expected ({steps}, {n_drones}, 2), got {drone_position.shape}"
+        )
+    cross = square = 0.0
+    for i in range(n_drones):
+        for other in range(i + 1, n_drones):
+            both = np.isfinite(prediction[:, i, :, 0]) & np.isfinite(prediction[:, other, :, 0])
+            k, _ = np.nonzero(both)
+            difference = (prediction[:, i] - prediction[:, other])[both]  # (S, 2)
+            baseline = (drone_position[:, i] - drone_position[:, other])[k]  # (S, 2)
+            cross += float(np.sum(difference * baseline))
+            square += float(np.sum(baseline * baseline))
+    return float(np.clip(cross / square, 0.0, 0.5)) if square > 0 else 0.0
+
+
+def deshrink_labels(labels: np.ndarray, drone_position: np.ndarray, pull: float) -> np.ndarray:
+    """Each drone's labels pushed away from the drone by the pull ``a`` = ``pull``
+    (:func:`estimate_pull`): ``l' = d_i + (l - d_i) / (1 - a)``, which returns ``x`` for a label
+    ``l = x - a (x - d_i)`` pulled toward drone ``i`` as its own predictions are; so training
+    does not teach the pull back. ``labels`` ``(M, T, N, 2)`` m (from :func:`drone_labels`; the
+    label of step ``t`` goes with the prediction made at ``t - 1``); ``drone_position``
+    ``(>= T, M, 2)`` m, drone ``i`` at step ``t - 1`` is the ``d_i`` of label ``t`` (step 0's
+    own for ``t = 0``). ``pull`` in ``[0, 1)``."""
+    if not 0.0 <= pull < 1.0:
+        raise ValueError(f"pull: must be in [0, 1), got {pull}")
+    labels = np.asarray(labels, dtype=float)
+    steps = labels.shape[1]
+    where = np.asarray(drone_position, dtype=float)[np.maximum(np.arange(steps) - 1, 0)]
+    centre = where.transpose(1, 0, 2)[:, :, None, :]  # (M, T, 1, 2)
+    return centre + (labels - centre) / (1.0 - pull)
+
+
 #: Label sources by name (``--labels``).
 LABEL_SOURCES: dict[str, type[LabelSource]] = {
     "smoothed": SmoothedLabels,

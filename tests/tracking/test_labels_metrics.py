@@ -1,5 +1,5 @@
-"""Pseudo-label sources (smoothed, filtered, ground truth) on the episode grid, and OSPA/GOSPA
-from Stone Soup checked by hand."""
+"""Pseudo-label sources (smoothed, filtered, ground truth) on the episode grid, the pull
+estimate and the labels' de-shrinking, and OSPA/GOSPA from Stone Soup checked by hand."""
 
 import math
 
@@ -14,7 +14,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.labels import drone_labels, label_drones
+from dronefl.tracking.labels import deshrink_labels, drone_labels, estimate_pull, label_drones
 
 DT = 0.2  # s
 
@@ -129,3 +129,48 @@ def test_drone_labels_follow_the_predictions_one_step_later():
     np.testing.assert_array_equal(every, np.broadcast_to(position, (2, 4, 1, 2)))
     with pytest.raises(ValueError, match="prediction"):
         drone_labels(position, prediction[:, :, :0], [40.0, 20.0], "all")
+
+
+def _pulled(pull, n_steps=400, noise=0.3, seed=0):
+    """Three drones and two targets at random spots; each prediction is the target pulled a
+    fraction ``pull`` toward its drone, plus ``noise`` m of noise; a few are missing."""
+    rng = np.random.default_rng(seed)
+    target = rng.uniform(-20, 20, (n_steps, 1, 2, 2))  # (K, 1, N, 2)
+    drone = rng.uniform(-20, 20, (n_steps, 3, 2))  # (K, M, 2)
+    prediction = (
+        target - pull * (target - drone[:, :, None]) + rng.normal(0, noise, (n_steps, 3, 2, 2))
+    )
+    prediction[rng.random((n_steps, 3, 2)) < 0.2] = np.nan
+    return target, drone, prediction
+
+
+@pytest.mark.parametrize("pull", [0.0, 0.07, 0.2])
+def test_the_pull_is_measured_from_the_drones_disagreement(pull):
+    _, drone, prediction = _pulled(pull)
+    assert estimate_pull(prediction, drone) == pytest.approx(pull, abs=0.005)
+
+
+def test_the_pull_estimate_is_clipped_and_zero_without_a_pair():
+    _, drone, pushed = _pulled(-0.2)  # away from the drone
+    assert estimate_pull(pushed, drone) == 0.0
+    _, drone, prediction = _pulled(0.8)
+    assert estimate_pull(prediction, drone) == 0.5
+    assert estimate_pull(prediction[:, :1], drone[:, :1]) == 0.0  # one drone: no pair
+    with pytest.raises(ValueError, match="drone_position"):
+        estimate_pull(prediction, drone[:, :2])
+
+
+def test_deshrunk_labels_undo_the_pull_toward_each_drone():
+    # Drone i's label of step t is the target pulled toward where drone i was at t - 1.
+    target, drone, _ = _pulled(0.0)
+    where = drone[np.maximum(np.arange(len(drone)) - 1, 0)].transpose(1, 0, 2)[:, :, None]
+    labels = target[:, 0][None] - 0.1 * (target[:, 0][None] - where)  # (M, T, N, 2)
+    labels[0, :5] = np.nan  # no label: stays none
+    fixed = deshrink_labels(labels, drone, 0.1)
+    np.testing.assert_allclose(
+        fixed[:, 5:], np.broadcast_to(target[5:, 0], (3, len(drone) - 5, 2, 2))
+    )
+    assert np.isnan(fixed[0, :5]).all()
+    np.testing.assert_allclose(deshrink_labels(labels, drone, 0.0)[:, 5:], labels[:, 5:])
+    with pytest.raises(ValueError, match="pull"):
+        deshrink_labels(labels, drone, 1.0)
