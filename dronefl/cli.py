@@ -931,6 +931,7 @@ def cloud(
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
     label_drones: LabelDronesOption = "all",
+    deshrink_labels: DeshrinkOption = False,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -962,6 +963,7 @@ def cloud(
             tls_dir=str(Path(tls_dir).resolve()) if tls_dir else "",
             start_timeout=start_timeout,
             label_drones=label_drones,
+            deshrink_labels=deshrink_labels,
         )
         fl = FlSettings(
             run_dir=str(out / "fl"),
@@ -1000,6 +1002,7 @@ def deploy_up(
         "runs/pretrained"
     ),
     label_drones: LabelDronesOption = "all",
+    deshrink_labels: DeshrinkOption = False,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1028,6 +1031,7 @@ def deploy_up(
             pretrained=pretrained,
             restart_drones=restart_drones,
             label_drones=label_drones,
+            deshrink_labels=deshrink_labels,
         )
         metrics = run_deploy(config)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)

@@ -2,6 +2,9 @@
 
 import importlib.util
 from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
 
 from dronefl.experiments.episode import EpisodeMetrics
 
@@ -37,3 +40,46 @@ def test_a_detector_that_misses_half_its_detections_predicts_worse(tmp_path, qui
     assert paper.config == {**missing.config, "out": paper.config["out"]}
     # Windows with half their boxes missing predict worse (measured: 8.1 vs 2.3 m^2).
     assert missing.tracking.prediction_error > 1.5 * paper.tracking.prediction_error
+
+
+def _compare_runs():
+    spec = importlib.util.spec_from_file_location(
+        "compare_runs", ROOT / "examples" / "compare_runs.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _episodes(scenario, values):
+    """Stand-ins for EpisodeMetrics with the attributes compare() reads, by seed."""
+    return {
+        seed: SimpleNamespace(
+            seed=seed,
+            scenario=scenario,
+            tracking=SimpleNamespace(prediction_error=p, tracking_distance=d, tracking_error=e),
+        )
+        for seed, (p, d, e) in values.items()
+    }
+
+
+def test_compare_runs_tabulates_the_shared_seeds_against_the_first_variant(tmp_path):
+    example = _compare_runs()
+    base = _episodes("case2", {0: (2.0, 20.0, 1.0), 1: (4.0, 30.0, 3.0), 7: (9.0, 9.0, 9.0)})
+    other = _episodes("case2", {0: (1.0, 22.0, 1.0), 1: (2.0, 33.0, 3.0)})
+    table, seeds = example.compare({"base": base, "other": other})
+    assert seeds == [0, 1]  # seed 7 was flown by one variant only
+    rows = table.splitlines()
+    assert rows[0].startswith("| case2, seeds 0 1 |")
+    assert rows[2] == "| base | 3.00 ± 1.00 | 25.00 ± 5.00 | 2.00 ± 1.00 |"
+    assert (
+        rows[3]
+        == "| other | 1.50 ± 0.50 (-50.0 %) | 27.50 ± 5.50 (+10.0 %) | 2.00 ± 1.00 (+0.0 %) |"
+    )
+    assert example.plot({"base": base, "other": other}, seeds, tmp_path / "c.png").is_file()
+    with pytest.raises(ValueError, match="mix scenarios"):
+        example.compare({"base": base, "c3": _episodes("case3", {0: (1.0, 1.0, 1.0)})})
+    with pytest.raises(ValueError, match="share no seed"):
+        example.compare({"base": base, "late": _episodes("case2", {5: (1.0, 1.0, 1.0)})})
+    with pytest.raises(FileNotFoundError, match="no seed"):
+        example.load_variant(tmp_path)

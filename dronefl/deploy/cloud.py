@@ -59,13 +59,21 @@ from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
-from dronefl.tracking.labels import LABEL_DRONES, drone_labels
+from dronefl.tracking.labels import LABEL_DRONES, deshrink_labels, drone_labels, estimate_pull
 from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
 #: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
 SUPERNODE_JOIN_S = 30.0
 
 _PREFIX = "deploy-"
+
+
+def _flag(value: object) -> bool:
+    """A run-config flag: Flower gives TOML's ``true`` as a bool, ``--run-config`` text as one too;
+    a string (``"false"``, ``"1"``) is read by its meaning, not by ``bool("false") is True``."""
+    if isinstance(value, str):
+        return value.strip().lower() in ("true", "1", "yes")
+    return bool(value)
 
 
 @dataclass(frozen=True)
@@ -78,7 +86,8 @@ class CloudSettings:
     pretrained weights (a file written by :func:`~dronefl.deploy.clientapp.save_model`);
     ``out`` where ``cloud.npz`` / ``cloud.json`` go; ``label_drones`` which drone learns from
     which label (:data:`~dronefl.tracking.labels.LABEL_DRONES`, as ``dronefl track
-    --label-drones``).
+    --label-drones``); ``deshrink_labels`` pushes each drone's labels away from it by the pull
+    its predictions show (as ``dronefl track --deshrink-labels``).
     """
 
     scenario: str
@@ -94,6 +103,7 @@ class CloudSettings:
     start_timeout: float = 120.0
     round_timeout: float = 300.0
     label_drones: str = "all"
+    deshrink_labels: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in DEPLOY_METHODS:
@@ -111,7 +121,7 @@ class CloudSettings:
         tls = CertificateFolder(Path(self.tls_dir)).zenoh("cloud") if self.tls_dir else None
         return LinkConfig((self.listen,), (self.connect,), tls)
 
-    def to_run_config(self) -> dict[str, str | float]:
+    def to_run_config(self) -> dict[str, str | float | bool]:
         return {_PREFIX + k.replace("_", "-"): v for k, v in asdict(self).items()}
 
     @classmethod
@@ -120,7 +130,8 @@ class CloudSettings:
         for name, kind in cls.__annotations__.items():
             key = _PREFIX + name.replace("_", "-")
             if key in config:
-                values[name] = float(config[key]) if kind == "float" else str(config[key])
+                convert = {"float": float, "bool": _flag}.get(kind, str)
+                values[name] = convert(config[key])
         return cls(**values)
 
 
@@ -168,6 +179,7 @@ class CloudEpisode:
         self.nodes: dict[int, int] = {}  # drone id -> its SuperNode's id
         m, n = len(s.drones), len(s.targets)
         self.prediction = np.full((self.n_steps, m, n, 2), np.nan)
+        self.drone_position = np.full((self.n_steps, m, 2), np.nan)  # telemetry of each step
         self.track_position = np.full((self.n_steps + 1, n, 2), np.nan)
         self.trace = np.full((self.n_steps, n), np.nan)
         self.cost = np.zeros(self.n_steps)
@@ -288,6 +300,9 @@ class CloudEpisode:
     def _step(self, k: int) -> None:
         telemetry = self._wait_telemetry(k)
         started = time.perf_counter()
+        row = {d.drone_id: d.position for d in telemetry.drones}
+        for i, drone_id in enumerate(self.scenario.drone_ids):
+            self.drone_position[k, i] = row.get(drone_id, (np.nan, np.nan))
         received = self._wait_predictions(k)
         measurements = []
         for i, drone_id in enumerate(self.scenario.drone_ids):
@@ -335,17 +350,16 @@ class CloudEpisode:
         started = time.perf_counter()
         server_round = len(self.rounds) + 1
         # The same labels as `dronefl track`'s default: the fused tracks, RTS-smoothed, each
-        # drone's kept by the --label-drones rule.
+        # drone's kept by the --label-drones rule and de-shrunk with --deshrink-labels.
         t = np.arange(steps) * self.scenario.dt
         smoothed = make_labels("smoothed", self.fuser, t).position
         altitudes = [d.altitude for d in self.scenario.drones]
-        per_drone = dict(
-            zip(
-                self.scenario.drone_ids,
-                drone_labels(smoothed, self.prediction, altitudes, self.settings.label_drones),
-                strict=True,
-            )
-        )
+        own = drone_labels(smoothed, self.prediction, altitudes, self.settings.label_drones)
+        pull = estimate_pull(self.prediction[:steps], self.drone_position[:steps])
+        if self.settings.deshrink_labels:
+            own = deshrink_labels(own, self.drone_position[:steps], pull)
+            log(INFO, "round %d: labels de-shrunk by the pull %.3f", server_round, pull)
+        per_drone = dict(zip(self.scenario.drone_ids, own, strict=True))
         if not any(np.isfinite(own).any() for own in per_drone.values()):
             log(INFO, "round %d: no drone has a label (--label-drones); none played", server_round)
             return
@@ -390,6 +404,7 @@ class CloudEpisode:
             rejected=rejected,
             weight_bytes_down=weights["down"],
             weight_bytes_up=weights["up"],
+            pull=pull,
             step=steps,
             participants=participants,
             missing=tuple(d for d in self.scenario.drone_ids if d not in participants),

@@ -55,6 +55,7 @@ class DeployConfig:
     pretrained: Path = Path("runs/pretrained")
     restart_drones: bool = False
     label_drones: str = "all"
+    deshrink_labels: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in DEPLOY_METHODS:
@@ -186,6 +187,7 @@ def _commands(
             "--epochs", str(config.epochs),
             "--stride", str(config.stride),
             "--label-drones", config.label_drones,
+            *(["--deshrink-labels"] if config.deshrink_labels else []),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

@@ -9,10 +9,12 @@ ground-truth labels and windows L_p -> L_f = 1:
 * ``centralized``: the large model on the pooled windows of every drone, in the cloud.
 
 Results are cached under ``<folder>/<scenario name>/`` and keyed by content: the recording by a
-hash of the scenario, the recording seed and duration (``data-<hash>/``), each model by a hash of
-that and of every training setting (``<kind>-<hash>/checkpoint.npz``), so an edited scenario or
-a changed setting never reuses stale weights. Pretraining runs its own Flower simulation and
-must be done before an episode starts its session (:func:`pretrained_state`).
+hash of the scenario, the recording seed and duration and of the source code that records it
+(:data:`RECORDING_CODE`; ``data-<hash>/``), each model by a hash of that, of every training
+setting and of the code that trains (:data:`TRAINING_CODE`; ``<kind>-<hash>/checkpoint.npz``),
+so an edited scenario, a changed setting or changed code never reuses stale weights.
+Pretraining runs its own Flower simulation and must be done before an episode starts its
+session (:func:`pretrained_state`).
 """
 
 from __future__ import annotations
@@ -34,8 +36,15 @@ from dronefl.fl.simulation import run_federated
 from dronefl.models.model import PredictorConfig
 from dronefl.progress import progress_bar
 
+_PACKAGE = Path(__file__).resolve().parents[1]
 PRETRAIN_SEED = 1000
 KINDS = ("dronefl", "centralized")
+#: The package's files (paths relative to ``dronefl/``; a folder means its ``*.py``) that make
+#: the crop-field recording and those that train on it: a change to any of them changes the
+#: cache key (a refactor too: it re-pretrains once, 3-4 min, rather than risk stale weights).
+RECORDING_CODE = ("sim", "perception", "config.py", "logs.py", "experiments/simulate.py",
+                  "assets/projection_noise.json")  # fmt: skip
+TRAINING_CODE = ("models", "fl", "experiments/fl_offline.py", "experiments/pretrain.py")
 
 
 @dataclass(frozen=True)
@@ -66,7 +75,10 @@ class PretrainSpec:
     @property
     def data_key(self) -> str:
         """Hash of what the recording depends on."""
-        return _digest([self.scenario.content_hash, self.duration, self.recording_seed])
+        return _digest(
+            [self.scenario.content_hash, self.duration, self.recording_seed,
+             code_digest(RECORDING_CODE)]
+        )  # fmt: skip
 
     def settings(self, folder: Path) -> FlSettings:
         """The Flower/centralized training settings, writing under ``folder``."""
@@ -82,7 +94,9 @@ class PretrainSpec:
             seed=0,
         )
         base = PRESETS[self.preset].apply(unset)
-        key = _digest([self.data_key, base.training_key(), repr(base.model)])
+        key = _digest(
+            [self.data_key, base.training_key(), repr(base.model), code_digest(TRAINING_CODE)]
+        )
         return dataclasses.replace(base, out_dir=str(root / f"{self.kind}-{key}"))
 
     @property
@@ -136,6 +150,20 @@ def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
     if not history or not history[-1].test_mse:
         raise ValueError(f"{settings.history_path}: no evaluated round")
     return dict(sorted(history[-1].test_mse.items()))
+
+
+def code_digest(parts: tuple[str, ...], root: Path = _PACKAGE) -> str:
+    """SHA-256 (12 hex digits) of the files ``parts`` under ``root`` (a folder: its ``*.py``,
+    recursively), by path relative to ``root`` and content; a missing part is an error."""
+    digest = hashlib.sha256()
+    for part in parts:
+        path = root / part
+        if not path.exists():
+            raise FileNotFoundError(f"{path}: listed in the pretraining cache key, missing")
+        for file in sorted(path.rglob("*.py")) if path.is_dir() else [path]:
+            digest.update(file.relative_to(root).as_posix().encode() + b"\0")
+            digest.update(file.read_bytes() + b"\0")
+    return digest.hexdigest()[:12]
 
 
 def _digest(parts: list) -> str:

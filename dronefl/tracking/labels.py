@@ -195,7 +195,8 @@ def estimate_pull(prediction: np.ndarray, drone_position: np.ndarray) -> float:
     over every step ``k`` and pair of drones ``i != l`` that both predicted target ``j``, which
     holds when each prediction is ``z_i = x - a (x - d_i)`` plus noise (``x`` the target,
     ``d_i`` its drone). ``prediction`` ``(K, M, N, 2)`` m (NaN where none), the prediction made
-    at step ``k``; ``drone_position`` ``(>= K, M, 2)`` m, where each drone was at step ``k``.
+    at step ``k``; ``drone_position`` ``(>= K, M, 2)`` m, where each drone was at step ``k``
+    (NaN where unknown: those steps are left out).
     Returns ``a`` clipped to ``[0, 0.5]`` (0 without a pair): the pull measured here is toward
     the drone, and 0.5 bounds the de-shrinking gain ``1 / (1 - a)`` at 2.
     """
@@ -209,7 +210,9 @@ def estimate_pull(prediction: np.ndarray, drone_position: np.ndarray) -> float:
     cross = square = 0.0
     for i in range(n_drones):
         for other in range(i + 1, n_drones):
+            seen = np.isfinite(drone_position[:, i, 0]) & np.isfinite(drone_position[:, other, 0])
             both = np.isfinite(prediction[:, i, :, 0]) & np.isfinite(prediction[:, other, :, 0])
+            both &= seen[:, None]
             k, _ = np.nonzero(both)
             difference = (prediction[:, i] - prediction[:, other])[both]  # (S, 2)
             baseline = (drone_position[:, i] - drone_position[:, other])[k]  # (S, 2)

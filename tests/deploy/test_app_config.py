@@ -37,3 +37,15 @@ def test_the_staged_app_is_the_package_and_its_scenarios(tmp_path):
     assert (staged / "dronefl/deploy/cloud.py").read_bytes() == (
         root / "dronefl/deploy/cloud.py"
     ).read_bytes()
+
+
+def test_cloud_settings_survive_the_run_config():
+    settings = CloudSettings(
+        scenario="case2", model="m", out="o", round_timeout=12.5, deshrink_labels=True
+    )
+    assert CloudSettings.from_run_config(settings.to_run_config()) == settings
+    # `flwr run --run-config` text: "false" is False, not bool("false").
+    as_text = {k: str(v).lower() for k, v in settings.to_run_config().items()}
+    assert CloudSettings.from_run_config(as_text).deshrink_labels is True
+    as_text["deploy-deshrink-labels"] = "false"
+    assert CloudSettings.from_run_config(as_text).deshrink_labels is False

@@ -50,7 +50,7 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     command = cli(
         "deploy", "up", "--scenario", "case2", "--env", "crop_field", "--seed", "3",
         "--duration", "60", "--fl-period", "25", "--epochs", "1", "--label-drones", "lower",
-        "--base-port", str(free_port_block()), "--out", str(out),
+        "--deshrink-labels", "--base-port", str(free_port_block()), "--out", str(out),
         "--pretrained", str(quick_pretrained_case2), "--restart-drones",
     )  # fmt: skip
     said = tmp_path / "launcher.out"
@@ -86,6 +86,11 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert rounds[1].participants == (1,) and rounds[1].missing == (2, 3), rounds[1]
     assert rounds[2].participants == (1, 2) and rounds[2].missing == (3,), rounds[2]
     assert all("drone 3: no training examples" in r.rejected for r in rounds.values())
+    # --deshrink-labels reached the ServerApp's run config: each round measured the pull
+    # (two drones predicting a target disagree along their baseline; clipped to [0, 0.5]).
+    assert all(r.pull is not None and 0.0 <= r.pull <= 0.5 for r in rounds.values()), rounds
+    server_log = (out / "cloud" / "logs" / "flwr-run.log").read_text()
+    assert "round 1: labels de-shrunk by the pull" in server_log
     assert metrics.missed_rounds == {1: (), 2: (1,), 3: (1, 2)}
     drones = out / "drones"
     assert np.isnan(PseudoLabels.load(drones / "drone-3" / "tracks.npz").position).all()

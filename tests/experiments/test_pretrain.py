@@ -55,6 +55,38 @@ def test_every_training_setting_is_in_the_cache_key(tmp_path):
     }
 
 
+def test_changed_code_changes_the_cache_key(tmp_path, monkeypatch):
+    import dronefl.experiments.pretrain as pretrain
+
+    package = tmp_path / "package"
+    (package / "sim").mkdir(parents=True)
+    (package / "sim" / "world.py").write_text("STEP = 0.2\n")
+    (package / "sim" / "notes.txt").write_text("not code")
+    (package / "config.py").write_text("")
+    before = pretrain.code_digest(("sim", "config.py"), package)
+    (package / "sim" / "notes.txt").write_text("edited, still not code")
+    assert pretrain.code_digest(("sim", "config.py"), package) == before
+    (package / "sim" / "world.py").write_text("STEP = 0.1\n")
+    assert pretrain.code_digest(("sim", "config.py"), package) != before
+    with pytest.raises(FileNotFoundError, match="missing"):
+        pretrain.code_digest(("sim", "gone.py"), package)
+
+    # Recording code keys the recording and the model; training code the model alone.
+    spec = PretrainSpec(SCENARIO, "dronefl")
+    first = spec.settings(tmp_path)
+    digest = pretrain.code_digest
+    monkeypatch.setattr(
+        pretrain, "code_digest", lambda parts: digest(parts) + ("x" if "fl" in parts else "")
+    )
+    retrained = spec.settings(tmp_path)
+    assert retrained.run_dir == first.run_dir and retrained.out_dir != first.out_dir
+    monkeypatch.setattr(
+        pretrain, "code_digest", lambda parts: digest(parts) + ("x" if "sim" in parts else "")
+    )
+    recorded = spec.settings(tmp_path)
+    assert recorded.run_dir != first.run_dir and recorded.out_dir != first.out_dir
+
+
 def _with_speed(raw: dict, speed: float) -> dict:
     return {**raw, "targets": [{**t, "speed": speed} for t in raw["targets"]]}
 

@@ -148,6 +148,9 @@ def _pulled(pull, n_steps=400, noise=0.3, seed=0):
 def test_the_pull_is_measured_from_the_drones_disagreement(pull):
     _, drone, prediction = _pulled(pull)
     assert estimate_pull(prediction, drone) == pytest.approx(pull, abs=0.005)
+    unknown = drone.copy()
+    unknown[::3, 1] = np.nan  # steps without telemetry are left out, not NaN
+    assert estimate_pull(prediction, unknown) == pytest.approx(pull, abs=0.005)
 
 
 def test_the_pull_estimate_is_clipped_and_zero_without_a_pair():
