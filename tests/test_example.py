@@ -11,10 +11,9 @@ from dronefl.experiments.episode import EpisodeMetrics
 ROOT = Path(__file__).parents[1]
 
 
-def _example():
-    spec = importlib.util.spec_from_file_location(
-        "change_one_part", ROOT / "examples" / "change_one_part.py"
-    )
+def _load(name: str):
+    """``examples/<name>.py`` as a module (the examples are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "examples" / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -28,7 +27,7 @@ def test_the_readme_shows_the_example_file():
 
 
 def test_a_detector_that_misses_half_its_detections_predicts_worse(tmp_path, quick_pretrained):
-    table = _example().compare(
+    table = _load("change_one_part").compare(
         tmp_path, miss=0.5, duration=30.0, environment="crop_field", runtime="torch",
         pretrained=quick_pretrained, progress=False, animate=False,
     )  # fmt: skip
@@ -40,15 +39,6 @@ def test_a_detector_that_misses_half_its_detections_predicts_worse(tmp_path, qui
     assert paper.config == {**missing.config, "out": paper.config["out"]}
     # Windows with half their boxes missing predict worse (measured: 8.1 vs 2.3 m^2).
     assert missing.tracking.prediction_error > 1.5 * paper.tracking.prediction_error
-
-
-def _compare_runs():
-    spec = importlib.util.spec_from_file_location(
-        "compare_runs", ROOT / "examples" / "compare_runs.py"
-    )
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def _episodes(scenario, values):
@@ -64,7 +54,7 @@ def _episodes(scenario, values):
 
 
 def test_compare_runs_tabulates_the_shared_seeds_against_the_first_variant(tmp_path):
-    example = _compare_runs()
+    example = _load("compare_runs")
     base = _episodes("case2", {0: (2.0, 20.0, 1.0), 1: (4.0, 30.0, 3.0), 7: (9.0, 9.0, 9.0)})
     other = _episodes("case2", {0: (1.0, 22.0, 1.0), 1: (2.0, 33.0, 3.0)})
     table, seeds = example.compare({"base": base, "other": other})

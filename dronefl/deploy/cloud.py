@@ -59,7 +59,7 @@ from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
-from dronefl.tracking.labels import LABEL_DRONES, deshrink_labels, drone_labels, estimate_pull
+from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.wire import ControlMessage, PredictionMessage, WireError
 
 #: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
@@ -354,10 +354,11 @@ class CloudEpisode:
         t = np.arange(steps) * self.scenario.dt
         smoothed = make_labels("smoothed", self.fuser, t).position
         altitudes = [d.altitude for d in self.scenario.drones]
-        own = drone_labels(smoothed, self.prediction, altitudes, self.settings.label_drones)
-        pull = estimate_pull(self.prediction[:steps], self.drone_position[:steps])
+        own, pull = training_labels(
+            smoothed, self.prediction, self.drone_position[:steps], altitudes,
+            self.settings.label_drones, self.settings.deshrink_labels,
+        )  # fmt: skip
         if self.settings.deshrink_labels:
-            own = deshrink_labels(own, self.drone_position[:steps], pull)
             log(INFO, "round %d: labels de-shrunk by the pull %.3f", server_round, pull)
         per_drone = dict(zip(self.scenario.drone_ids, own, strict=True))
         if not any(np.isfinite(own).any() for own in per_drone.values()):

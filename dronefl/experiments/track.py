@@ -77,12 +77,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.labels import (
-    LABEL_DRONES,
-    deshrink_labels,
-    drone_labels,
-    estimate_pull,
-)
+from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -485,13 +480,10 @@ class ClosedLoop:
         truth = self.log.target_position[:steps]
         labels = make_labels(self.config.labels, self.fuser, self.log.t[:steps], truth=truth)
         altitudes = [d.altitude for d in self.scenario.drones]
-        own = drone_labels(
-            labels.position, self.log.prediction, altitudes, self.config.label_drones
-        )
-        pull = estimate_pull(self.log.prediction[:steps], self.log.drone_position)
-        if self.config.deshrink_labels:
-            own = deshrink_labels(own, self.log.drone_position, pull)
-        return own, pull
+        return training_labels(
+            labels.position, self.log.prediction, self.log.drone_position, altitudes,
+            self.config.label_drones, self.config.deshrink_labels,
+        )  # fmt: skip
 
 
 def _fly(

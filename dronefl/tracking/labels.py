@@ -246,6 +246,27 @@ LABEL_SOURCES: dict[str, type[LabelSource]] = {
 }
 
 
+def training_labels(
+    position: np.ndarray,
+    prediction: np.ndarray,
+    drone_position: np.ndarray,
+    altitudes: Sequence[float],
+    rule: str,
+    deshrink: bool,
+) -> tuple[np.ndarray, float]:
+    """What each drone trains on at a round, as ``dronefl track`` and the deployed cloud give
+    it: :func:`drone_labels` of ``position`` ``(T, N, 2)`` m under ``rule``, de-shrunk by the
+    pull (:func:`deshrink_labels`) when ``deshrink``; and that pull, measured either way
+    (:func:`estimate_pull` over the ``T`` steps so far). ``prediction`` ``(>= T, M, N, 2)`` m,
+    ``drone_position`` ``(>= T, M, 2)`` m. Returns ``(labels (M, T, N, 2) m, pull)``."""
+    steps = np.asarray(position).shape[0]
+    own = drone_labels(position, prediction, altitudes, rule)
+    pull = estimate_pull(np.asarray(prediction)[:steps], drone_position)
+    if deshrink:
+        own = deshrink_labels(own, drone_position, pull)
+    return own, pull
+
+
 def make_labels(
     source: str,
     fuser: Fuser,
