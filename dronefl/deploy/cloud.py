@@ -68,14 +68,6 @@ SUPERNODE_JOIN_S = 30.0
 _PREFIX = "deploy-"
 
 
-def _flag(value: object) -> bool:
-    """A run-config flag: Flower gives TOML's ``true`` as a bool, ``--run-config`` text as one too;
-    a string (``"false"``, ``"1"``) is read by its meaning, not by ``bool("false") is True``."""
-    if isinstance(value, str):
-        return value.strip().lower() in ("true", "1", "yes")
-    return bool(value)
-
-
 @dataclass(frozen=True)
 class CloudSettings:
     """The cloud's side of one deployed episode (passed as the ServerApp's run config).
@@ -126,12 +118,20 @@ class CloudSettings:
 
     @classmethod
     def from_run_config(cls, config: dict) -> CloudSettings:
+        """Parse the ServerApp's run config (TOML: a flag arrives as a bool). A flag that is
+        not a bool (``"false"`` would be true to ``bool``) raises :class:`CloudError` naming
+        the key, as :meth:`FlSettings.from_run_config` does."""
         values = {}
         for name, kind in cls.__annotations__.items():
             key = _PREFIX + name.replace("_", "-")
-            if key in config:
-                convert = {"float": float, "bool": _flag}.get(kind, str)
-                values[name] = convert(config[key])
+            if key not in config:
+                continue
+            value = config[key]
+            if kind == "bool" and not isinstance(value, bool):
+                raise CloudError(f"run config: {key!r} must be a bool, got {value!r}")
+            if kind != "bool":
+                value = float(value) if kind == "float" else str(value)
+            values[name] = value
         return cls(**values)
 
 
