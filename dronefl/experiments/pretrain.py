@@ -20,6 +20,7 @@ session (:func:`pretrained_state`).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 from dataclasses import dataclass
@@ -77,7 +78,7 @@ class PretrainSpec:
         """Hash of what the recording depends on."""
         return _digest(
             [self.scenario.content_hash, self.duration, self.recording_seed,
-             code_digest(RECORDING_CODE)]
+             package_digest(RECORDING_CODE)]
         )  # fmt: skip
 
     def settings(self, folder: Path) -> FlSettings:
@@ -95,7 +96,7 @@ class PretrainSpec:
         )
         base = PRESETS[self.preset].apply(unset)
         key = _digest(
-            [self.data_key, base.training_key(), repr(base.model), code_digest(TRAINING_CODE)]
+            [self.data_key, base.training_key(), repr(base.model), package_digest(TRAINING_CODE)]
         )
         return dataclasses.replace(base, out_dir=str(root / f"{self.kind}-{key}"))
 
@@ -152,7 +153,14 @@ def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
     return dict(sorted(history[-1].test_mse.items()))
 
 
-def code_digest(parts: tuple[str, ...], root: Path = _PACKAGE) -> str:
+@functools.cache
+def package_digest(parts: tuple[str, ...]) -> str:
+    """:func:`code_digest` of this package's ``parts``, read once per process: the code a
+    process runs is the code it imported, whatever is edited on disk since."""
+    return code_digest(parts, _PACKAGE)
+
+
+def code_digest(parts: tuple[str, ...], root: Path) -> str:
     """SHA-256 (12 hex digits) of the files ``parts`` under ``root`` (a folder: its ``*.py``,
     recursively), by path relative to ``root`` and content; a missing part is an error."""
     digest = hashlib.sha256()

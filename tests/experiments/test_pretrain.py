@@ -74,14 +74,14 @@ def test_changed_code_changes_the_cache_key(tmp_path, monkeypatch):
     # Recording code keys the recording and the model; training code the model alone.
     spec = PretrainSpec(SCENARIO, "dronefl")
     first = spec.settings(tmp_path)
-    digest = pretrain.code_digest
+    digest = pretrain.package_digest
     monkeypatch.setattr(
-        pretrain, "code_digest", lambda parts: digest(parts) + ("x" if "fl" in parts else "")
+        pretrain, "package_digest", lambda parts: digest(parts) + ("x" if "fl" in parts else "")
     )
     retrained = spec.settings(tmp_path)
     assert retrained.run_dir == first.run_dir and retrained.out_dir != first.out_dir
     monkeypatch.setattr(
-        pretrain, "code_digest", lambda parts: digest(parts) + ("x" if "sim" in parts else "")
+        pretrain, "package_digest", lambda parts: digest(parts) + ("x" if "sim" in parts else "")
     )
     recorded = spec.settings(tmp_path)
     assert recorded.run_dir != first.run_dir and recorded.out_dir != first.out_dir
