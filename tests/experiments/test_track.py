@@ -14,7 +14,7 @@ from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.experiments.track import LoopParts, TrackConfig, run_episode
+from dronefl.experiments.track import RECOMMENDED, LoopParts, TrackConfig, run_episode
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.learners import LearnerSetup
 from dronefl.learners.centralized import CentralizedLearner
@@ -233,3 +233,17 @@ def test_the_preset_sets_the_episode_models_and_their_updates(tmp_path):
     large = PretrainSpec(case1, "centralized", preset="metric-sgd").model
     learner = CentralizedLearner(replace(setup, state=build_model(large).state_dict()))
     assert learner.settings.model == large and learner.settings.optimizer == "sgd"
+
+
+def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_path):
+    case2 = load_scenario("case2")
+    recommended = TrackConfig(case2, tmp_path, **RECOMMENDED)
+    assert (recommended.preset, recommended.label_drones, recommended.epochs) == (
+        "metric-scaffold",
+        "lower",
+        1,
+    )
+    assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
+    assert recommended.pretrain_spec().preset == "metric-scaffold"
+    default = TrackConfig(case2, tmp_path)  # the paper's online setting
+    assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
