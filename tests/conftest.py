@@ -3,6 +3,7 @@ worker per simulation engine), the shared fixture of a quickly pretrained Case 1
 ``cli_process``, which runs the ``dronefl`` command in child processes and checks that every
 process they started is gone at the end (the kill/resume tests)."""
 
+import atexit
 import contextlib
 import ctypes
 import multiprocessing
@@ -19,6 +20,7 @@ from cli_child import run_dronefl
 from filelock import FileLock
 
 _CACHE = tempfile.mkdtemp(prefix="dronefl-test-cache-")
+atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)  # each pytest process its own
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("MPLCONFIGDIR", os.path.join(_CACHE, "matplotlib"))
 os.environ.setdefault("FLWR_HOME", os.path.join(_CACHE, "flwr"))
