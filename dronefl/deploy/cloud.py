@@ -361,7 +361,7 @@ class CloudEpisode:
         if self.settings.deshrink_labels:
             log(INFO, "round %d: labels de-shrunk by the pull %.3f", server_round, pull)
         per_drone = dict(zip(self.scenario.drone_ids, own, strict=True))
-        if not any(np.isfinite(own).any() for own in per_drone.values()):
+        if not np.isfinite(own).any():
             log(INFO, "round %d: no drone has a label (--label-drones); none played", server_round)
             return
         ready = []
