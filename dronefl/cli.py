@@ -928,7 +928,9 @@ def cloud(
     duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
     fl_period: Annotated[float, typer.Option(help="Simulated s between FL rounds.")] = 40.0,
     seed: SeedOption = 0,
-    epochs: Annotated[int, typer.Option(help="Local epochs per round.")] = 10,
+    preset: PresetOption = "ours",
+    epochs: EpochsOption = None,
+    lr: LrOption = None,
     stride: Annotated[int, typer.Option(help="Samples between training windows.")] = 2,
     deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
     listen: Annotated[str, typer.Option(help="Zenoh endpoint host:port.")] = "127.0.0.1:7441",
@@ -944,16 +946,22 @@ def cloud(
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
     that fuses, plans and plays an FL round every --fl-period s. Writes cloud.npz/json.
 
+    --config, --epochs and --lr set the rounds' training as `dronefl track`'s do; the model
+    file must hold the model that --config trains (`dronefl deploy up --config` writes it).
+
     Example: dronefl cloud --model runs/deploy/model/pretrained.npz --superlink-host 0.0.0.0
     """
+    from dronefl.deploy.clientapp import load_model
     from dronefl.deploy.cloud import CloudSettings
     from dronefl.deploy.superlink import SuperLinkSettings, run_cloud
-    from dronefl.fl.records import FlSettings
+    from dronefl.fl.records import PRESETS, closed_loop_settings
 
     with _deploy_errors():
         load_scenario(scenario)
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
+        if preset not in PRESETS:
+            raise ValueError(f"--config: {preset!r} is not one of {', '.join(PRESETS)}")
         if tls_dir and not Path(tls_dir).is_dir():
             raise FileNotFoundError(f"--tls-dir: {tls_dir} does not exist")
         out = out.resolve()
@@ -971,19 +979,24 @@ def cloud(
             start_timeout=start_timeout,
             label_drones=label_drones,
             deshrink_labels=deshrink_labels,
+            preset=preset,
         )
-        fl = FlSettings(
+        fl = closed_loop_settings(
+            preset,
+            "dronefl",
+            past_steps=10,
+            stride=stride,
+            epochs=PRESETS[preset].epochs if epochs is None else epochs,
+            lr=PRESETS[preset].lr if lr is None else lr,
+            seed=seed,
             run_dir=str(out / "fl"),
             out_dir=str(out / "fl" / "global"),
-            method="dronefl",
-            past_steps=10,
-            future_steps=1,
-            stride=stride,
-            epochs=epochs,
-            seed=seed,
-            labels="tracks",
-            train_fraction=1.0,
         )
+        if load_model(model).model != fl.model:
+            raise ValueError(
+                f"--model: {model} holds another model than --config {preset} trains (pass "
+                "the --config it was pretrained with)"
+            )
         link = SuperLinkSettings(superlink_host, superlink_port, start_timeout)
         run_cloud(settings, fl, link, out / "logs")
 
@@ -1003,7 +1016,9 @@ def deploy_up(
     base_port: Annotated[int, typer.Option(help="First of the deployment's ports.")] = 7440,
     deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
     start_timeout: StartTimeoutOption = 120.0,
-    epochs: Annotated[int, typer.Option(help="Local epochs per round.")] = 10,
+    preset: PresetOption = "ours",
+    epochs: EpochsOption = None,
+    lr: LrOption = None,
     restart_drones: Annotated[bool, typer.Option(help="Restart a drone that dies.")] = False,
     pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
         "runs/pretrained"
@@ -1014,8 +1029,11 @@ def deploy_up(
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
     separate processes on 127.0.0.1; writes metrics.json and logs/ (one log per process).
+    --config, --epochs and --lr are `dronefl track`'s: the crop-field pretraining and every
+    round (SCAFFOLD's control variates included) follow the --config.
 
-    Example: dronefl deploy up --scenario case1 --duration 120 --fl-period 40 --out runs/dep
+    Example: dronefl deploy up --scenario case2 --duration 600 --fl-period 100 --config
+    metric-scaffold --label-drones lower --epochs 1 --out runs/deploy
     """
     from dronefl.deploy.launcher import DeployConfig, run_deploy
 
@@ -1034,7 +1052,9 @@ def deploy_up(
             base_port=base_port,
             deadline_ms=deadline_ms,
             start_timeout=start_timeout,
+            preset=preset,
             epochs=epochs,
+            lr=lr,
             pretrained=pretrained,
             restart_drones=restart_drones,
             label_drones=label_drones,

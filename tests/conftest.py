@@ -48,11 +48,17 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: item.path not in slow)
 
 
+#: The training presets whose quick models :func:`quick_pretrained` caches: the default and
+#: the recommended one (``make demo``'s), whose model reads box sizes otherwise.
+QUICK_PRESETS = ("ours", "metric-scaffold")
+
+
 @pytest.fixture(scope="session")
 def quick_pretrained(tmp_path_factory):
-    """A DroneFL model for Case 1 trained for ~6 s on 120 s of crop field (held-out error
-    ~2.5 m^2, good enough for the closed loop to keep its targets in view), cached where the
-    closed loop and ``deploy up --pretrained`` look for pretrained weights. Built once per
+    """DroneFL models for Case 1, one per preset of :data:`QUICK_PRESETS`, each trained for
+    ~6 s on 120 s of crop field (held-out error ~2.5 m^2, good enough for the closed loop to
+    keep its targets in view), cached where the closed loop and ``deploy up --pretrained`` look
+    for pretrained weights. Built once per
     run: the first pytest-xdist worker to ask builds it, under a file lock in the folder the
     workers share; the others wait for it and reuse it (it is only read)."""
     base = tmp_path_factory.getbasetemp()
@@ -68,18 +74,20 @@ def quick_pretrained(tmp_path_factory):
 
 @pytest.fixture
 def quick_pretrained_case2(quick_pretrained, tmp_path) -> Path:
-    """``quick_pretrained``'s model as Case 2's pretrained DroneFL model (the model is the same
+    """``quick_pretrained``'s models as Case 2's pretrained DroneFL models (a model is the same
     for any scenario), in ``tmp_path / "pretrained"``."""
     from dronefl.config import load_scenario
     from dronefl.experiments.pretrain import PretrainSpec
     from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 
-    case1, case2 = (
-        PretrainSpec(load_scenario(name), "dronefl").settings(folder)
-        for name, folder in (("case1", quick_pretrained), ("case2", tmp_path / "pretrained"))
-    )
-    state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
-    save_checkpoint(case2.checkpoint_path, case2.history_path, Checkpoint("dronefl", 20, state, []))
+    for preset in QUICK_PRESETS:
+        case1, case2 = (
+            PretrainSpec(load_scenario(name), "dronefl", preset=preset).settings(folder)
+            for name, folder in (("case1", quick_pretrained), ("case2", tmp_path / "pretrained"))
+        )
+        state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
+        checkpoint = Checkpoint("dronefl", 20, state, [])
+        save_checkpoint(case2.checkpoint_path, case2.history_path, checkpoint)
     return tmp_path / "pretrained"
 
 
@@ -91,7 +99,7 @@ def _train_quick_model(folder: Path) -> None:
     from dronefl.experiments.simulate import simulate
     from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
     from dronefl.logs import load_run
-    from dronefl.models.model import build_model, predictor_config
+    from dronefl.models.model import build_model
     from dronefl.models.train import TrainConfig, train_local
     from dronefl.models.windows import WindowSet, WindowSpec, build_windows, ground_truth_labels
 
@@ -112,15 +120,17 @@ def _train_quick_model(folder: Path) -> None:
     windows = WindowSet.concat(
         [build_windows(log, ground_truth_labels(log, truth), spec) for log in logs.values()]
     )
-    model = build_model(predictor_config("dronefl", 10, 1), seed=0)
     torch.set_num_threads(1)
-    train_local(model, windows, TrainConfig(epochs=20, batch_size=32, seed=0))
-    settings = PretrainSpec(load_scenario("case1"), "dronefl").settings(folder)
-    save_checkpoint(
-        settings.checkpoint_path,
-        settings.history_path,
-        Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
-    )
+    for preset in QUICK_PRESETS:
+        spec = PretrainSpec(load_scenario("case1"), "dronefl", preset=preset)
+        model = build_model(spec.model, seed=0)
+        train_local(model, windows, TrainConfig(epochs=20, batch_size=32, seed=0))
+        settings = spec.settings(folder)
+        save_checkpoint(
+            settings.checkpoint_path,
+            settings.history_path,
+            Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
+        )
 
 
 PR_SET_CHILD_SUBREAPER = 36

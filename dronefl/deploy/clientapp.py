@@ -7,13 +7,13 @@ the round's pseudo-labels (``tracks.npz``) before each round.
 
 The Deployment Engine runs every message in a fresh process, so the new global model of a
 round reaches the drone's predictor through the disk: a ``query`` message carrying the
-weights makes this app write them to ``<data-dir>/global.npz``.
+weights makes this app write them, with the run's architecture, to ``<data-dir>/global.npz``.
 """
 
 from __future__ import annotations
 
 import zipfile
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -31,28 +31,51 @@ from dronefl.fl.records import (
     SettingsError,
 )
 from dronefl.io import atomic_savez
+from dronefl.models.model import PredictorConfig
 
 DATA_DIR_KEY = "data-dir"
 GLOBAL_MODEL = "global.npz"
 
-#: Name of the round number inside a model file.
+#: Names of the round number and of the architecture (JSON) inside a model file.
 _ROUND = "__server_round__"
+_MODEL = "__model__"
+#: The architecture of model files written before they recorded theirs (all held ``ours``).
+_UNRECORDED = PredictorConfig(past_steps=10, future_steps=1)
 
 app = ClientApp()
 
 
-def save_model(path: Path, state: dict[str, torch.Tensor], server_round: int) -> None:
-    """Write model weights (after ``server_round``; 0: pretrained) atomically to ``path``."""
+@dataclass(frozen=True)
+class SavedModel:
+    """A model file's content: the weights ``state``, the ``server_round`` they are of (0:
+    pretrained) and the architecture ``model`` they belong to."""
+
+    state: dict[str, torch.Tensor]
+    server_round: int
+    model: PredictorConfig
+
+
+def save_model(
+    path: Path, state: dict[str, torch.Tensor], server_round: int, model: PredictorConfig
+) -> None:
+    """Write model weights (after ``server_round``; 0: pretrained) and their architecture
+    ``model`` atomically to ``path``: the file alone says how to build the predictor (a
+    preset's box reading changes the model, not the shapes of its weights)."""
     arrays = {k: v.detach().cpu().numpy() for k, v in state.items()}
-    atomic_savez(path, **{_ROUND: np.array(server_round)}, **arrays)
+    atomic_savez(
+        path, **{_ROUND: np.array(server_round), _MODEL: np.array(model.to_json())}, **arrays
+    )
 
 
-def load_model(path: Path) -> tuple[dict[str, torch.Tensor], int]:
-    """The weights and round number in a file written by :func:`save_model`."""
+def load_model(path: Path) -> SavedModel:
+    """The content of a file written by :func:`save_model` (a file written before files
+    recorded their architecture holds the ``ours`` model, L_p = 10, L_f = 1)."""
     try:
         with np.load(path, allow_pickle=False) as npz:
-            state = {k: torch.from_numpy(npz[k].copy()) for k in npz.files if k != _ROUND}
-            return state, int(npz[_ROUND])
+            names = [k for k in npz.files if k not in (_ROUND, _MODEL)]
+            state = {k: torch.from_numpy(npz[k].copy()) for k in names}
+            model = PredictorConfig.from_json(str(npz[_MODEL])) if _MODEL in npz else _UNRECORDED
+            return SavedModel(state, int(npz[_ROUND]), model)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise FileNotFoundError(f"{path}: missing or corrupt model file ({exc})") from None
 
@@ -80,6 +103,6 @@ def query(msg: Message, context: Context) -> Message:
     drone_id = int(context.node_config[DRONE_KEY])
     state = settings.layout.unpack(msg.content[ARRAYS_KEY])
     server_round = int(msg.content["config"][ROUND_KEY])
-    save_model(Path(settings.run_dir) / GLOBAL_MODEL, state, server_round)
+    save_model(Path(settings.run_dir) / GLOBAL_MODEL, state, server_round, settings.model)
     reply = RecordDict({METRICS_KEY: MetricRecord({DRONE_KEY: drone_id})})
     return Message(content=reply, reply_to=msg)

@@ -53,7 +53,7 @@ from dronefl.deploy.link import (
 )
 from dronefl.deploy.messages import LabelsMessage, TelemetryMessage, encode_release
 from dronefl.deploy.results import CloudLog, DeployedRound, TrafficCount
-from dronefl.fl.records import ARRAYS_KEY, ROUND_KEY, FlSettings, RoundRecord
+from dronefl.fl.records import ARRAYS_KEY, PRESETS, ROUND_KEY, FlSettings, RoundRecord
 from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
@@ -79,7 +79,9 @@ class CloudSettings:
     ``out`` where ``cloud.npz`` / ``cloud.json`` go; ``label_drones`` which drone learns from
     which label (:data:`~dronefl.tracking.labels.LABEL_DRONES`, as ``dronefl track
     --label-drones``); ``deshrink_labels`` pushes each drone's labels away from it by the pull
-    its predictions show (as ``dronefl track --deshrink-labels``).
+    its predictions show (as ``dronefl track --deshrink-labels``); ``preset`` the training
+    setting of the rounds (a key of :data:`~dronefl.fl.records.PRESETS`, as ``dronefl track
+    --config``; the rounds' own settings travel as :class:`~dronefl.fl.records.FlSettings`).
     """
 
     scenario: str
@@ -96,8 +98,11 @@ class CloudSettings:
     round_timeout: float = 300.0
     label_drones: str = "all"
     deshrink_labels: bool = False
+    preset: str = "ours"
 
     def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         if self.method not in DEPLOY_METHODS:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
         if self.label_drones not in LABEL_DRONES:
@@ -172,7 +177,12 @@ class CloudEpisode:
         self.planner = DroneFLPlanner.from_scenario(s)
         self.counter = ByteCounter()
         self.inbox = _Inbox()
-        self.state, _ = load_model(Path(settings.model))
+        saved = load_model(Path(settings.model))
+        if saved.model != fl.model:
+            raise CloudError(
+                f"{settings.model}: its model is not the one --config {settings.preset} trains"
+            )
+        self.state = saved.state
         self.history: list[RoundRecord] = []
         self.control: dict[str, torch.Tensor] | None = None  # SCAFFOLD's c, kept across rounds
         self.rounds: list[DeployedRound] = []

@@ -51,7 +51,7 @@ from dronefl.deploy.link import (
 from dronefl.deploy.messages import LabelsMessage, SenseMessage
 from dronefl.deploy.processes import Child, Children, DeployError, port_open, wait_for
 from dronefl.logs import PseudoLabels
-from dronefl.models.model import build_model, predictor_config
+from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.wire import PredictionMessage
@@ -125,12 +125,17 @@ class DroneProcess:
 
     def reload(self, payload: bytes) -> bytes:
         """Load the global model the ClientApp wrote to disk for the round in ``payload``."""
-        state, server_round = load_model(Path(self.settings.data_dir) / GLOBAL_MODEL)
-        if server_round != int(payload.decode()):
-            return f"model on disk is of round {server_round}".encode()
+        saved = load_model(Path(self.settings.data_dir) / GLOBAL_MODEL)
+        if saved.server_round != int(payload.decode()):
+            return f"model on disk is of round {saved.server_round}".encode()
+        if saved.model != self.predictor.config:
+            return b"model on disk is of another architecture than the one flown"
         with self.lock:
-            self.predictor.load_state(state)
-        print(f"drone {self.settings.drone_id}: model of round {server_round} loaded", flush=True)
+            self.predictor.load_state(saved.state)
+        print(
+            f"drone {self.settings.drone_id}: model of round {saved.server_round} loaded",
+            flush=True,
+        )
         return b"ok"
 
     def predict(self, payload: bytes) -> bytes:
@@ -150,11 +155,17 @@ class DroneProcess:
 
 
 def load_predictor(path: Path, past_steps: int) -> TrajectoryPredictor:
-    """The DroneFL predictor with the weights in ``path``, on ONNX Runtime."""
-    state, _ = load_model(path)
-    model = build_model(predictor_config("dronefl", past_steps, 1))
+    """The predictor the model file ``path`` holds (its architecture and weights), on ONNX
+    Runtime; ``past_steps`` L_p is what the drone's record feeds it."""
+    saved = load_model(path)
+    if saved.model.past_steps != past_steps or saved.model.future_steps != 1:
+        raise DeployError(
+            f"--model: {path} holds a model of L_p = {saved.model.past_steps}, L_f = "
+            f"{saved.model.future_steps}; the drone feeds L_p = {past_steps} and flies L_f = 1"
+        )
+    model = build_model(saved.model)
     try:
-        model.load_state_dict(state)
+        model.load_state_dict(saved.state)
     except RuntimeError:
         raise DeployError(
             f"--model: {path} does not hold the DroneFL predictor's weights"

@@ -29,6 +29,7 @@ from dronefl.deploy.certs import CertificateFolder, make_certificates
 from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
+from dronefl.fl.records import PRESETS
 from dronefl.tracking.labels import LABEL_DRONES
 
 HOST = "127.0.0.1"
@@ -50,7 +51,9 @@ class DeployConfig:
     base_port: int = 7440
     deadline_ms: float = 150.0
     start_timeout: float = 120.0
-    epochs: int = 10
+    preset: str = "ours"
+    epochs: int | None = None
+    lr: float | None = None
     stride: int = 2
     pretrained: Path = Path("runs/pretrained")
     restart_drones: bool = False
@@ -58,15 +61,22 @@ class DeployConfig:
     deshrink_labels: bool = False
 
     def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
+        for name in ("epochs", "lr"):  # unset: the preset's, as `dronefl track`
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, getattr(PRESETS[self.preset], name))
         if self.method not in DEPLOY_METHODS:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
         if self.label_drones not in LABEL_DRONES:
             raise ValueError(
                 f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
             )
-        for name in ("duration", "fl_period", "deadline_ms", "start_timeout"):
+        for name in ("duration", "fl_period", "deadline_ms", "start_timeout", "lr"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
+        if self.epochs < 1:
+            raise ValueError(f"--epochs: must be >= 1, got {self.epochs}")
         if not 1024 <= self.base_port <= 65000:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
 
@@ -83,14 +93,16 @@ class DeployConfig:
 
 
 def pretrained_model(config: DeployConfig, scenario: Scenario, out: Path) -> Path:
-    """The crop-field pretrained DroneFL model (:mod:`dronefl.experiments.pretrain`, the one
-    ``dronefl track`` starts from) as a model file every process loads by path."""
+    """The crop-field pretrained DroneFL model of the ``--config`` (:mod:`dronefl.experiments.
+    pretrain`, the one ``dronefl track`` starts from), with its architecture, as a model file
+    every process loads by path."""
     from dronefl.deploy.clientapp import save_model
     from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 
-    state = pretrained_state(PretrainSpec(scenario, "dronefl"), config.pretrained, progress=False)
+    spec = PretrainSpec(scenario, "dronefl", stride=config.stride, preset=config.preset)
+    state = pretrained_state(spec, config.pretrained, progress=False)
     path = out / "model" / "pretrained.npz"
-    save_model(path, state, 0)
+    save_model(path, state, 0, spec.model)
     return path
 
 
@@ -184,7 +196,9 @@ def _commands(
             "--duration", str(config.duration),
             "--fl-period", str(config.fl_period),
             "--seed", str(config.seed),
+            "--config", config.preset,
             "--epochs", str(config.epochs),
+            "--lr", repr(config.lr),
             "--stride", str(config.stride),
             "--label-drones", config.label_drones,
             *(["--deshrink-labels"] if config.deshrink_labels else []),

@@ -550,3 +550,38 @@ PRESETS: dict[str, Preset] = {
         "metric-scaffold", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold"
     ),
 }
+
+
+def closed_loop_settings(
+    preset: str,
+    method: str,
+    *,
+    past_steps: int,
+    stride: int,
+    epochs: int,
+    lr: float,
+    seed: int,
+    run_dir: str = "",
+    out_dir: str = "",
+    weights_dtype: str = "float32",
+) -> FlSettings:
+    """The settings of a closed-loop episode's model updates, shared by ``dronefl track`` and
+    the deployment's cloud (``dronefl cloud``): ``preset``'s training setting (a key of
+    :data:`PRESETS`: model options, batch, optimiser, drift correction) for ``method``, with
+    the episode's windows (``past_steps`` L_p -> L_f = 1, one every ``stride`` samples), E =
+    ``epochs``, ``lr`` and ``seed``, the fused tracks as labels and every recorded window
+    trained on (no test split, no federated evaluation)."""
+    if preset not in PRESETS:
+        raise SettingsError(f"--config: {preset!r} is not one of {', '.join(PRESETS)}")
+    base = FlSettings(run_dir, out_dir, method=method, future_steps=1)
+    return replace(
+        PRESETS[preset].apply(base),
+        past_steps=past_steps,
+        stride=stride,
+        epochs=epochs,
+        lr=lr,
+        seed=seed,
+        labels="tracks",
+        weights_dtype=weights_dtype,
+        train_fraction=1.0,
+    )

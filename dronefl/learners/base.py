@@ -18,14 +18,14 @@ Adding a method is one subclass here and one line in :data:`dronefl.learners.LEA
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
 import torch
 
-from dronefl.fl.records import PRESETS, FlSettings
+from dronefl.fl.records import FlSettings, closed_loop_settings
 from dronefl.models.online import OnboardRecord
 
 if TYPE_CHECKING:
@@ -55,16 +55,20 @@ class LearnerSetup:
     resumed: bool = False
 
     def fl_settings(self, method: str, run_dir: str = "", out_dir: str = "") -> FlSettings:
-        """The training settings of ``method``'s updates: the preset's, with this setup's
-        windows (L_f = 1), E, lr and seed."""
-        base = FlSettings(run_dir, out_dir, method=method, future_steps=1)
-        return replace(
-            PRESETS[self.preset].apply(base),
+        """The training settings of ``method``'s updates
+        (:func:`~dronefl.fl.records.closed_loop_settings`: the preset's, with this setup's
+        windows, E, lr, seed and weight format)."""
+        return closed_loop_settings(
+            self.preset,
+            method,
             past_steps=self.past_steps,
             stride=self.stride,
             epochs=self.epochs,
             lr=self.lr,
             seed=self.seed,
+            run_dir=run_dir,
+            out_dir=out_dir,
+            weights_dtype=self.weights_dtype,
         )
 
 

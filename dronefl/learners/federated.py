@@ -10,7 +10,7 @@ folder and continues from the global model and round history of its checkpoint.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -26,13 +26,8 @@ def session_settings(setup: LearnerSetup) -> FlSettings:
     """The Flower settings of an episode's online rounds: the DroneFL model of the setup's
     preset, L_f = 1, the fused tracks as labels, every recorded window trained on (no test
     split, no federated evaluation)."""
-    return replace(
-        setup.fl_settings(
-            "dronefl", str(setup.out / "fl" / "round_01"), str(setup.out / "fl" / "global")
-        ),
-        labels="tracks",
-        weights_dtype=setup.weights_dtype,
-        train_fraction=1.0,
+    return setup.fl_settings(
+        "dronefl", str(setup.out / "fl" / "round_01"), str(setup.out / "fl" / "global")
     )
 
 

@@ -40,7 +40,8 @@ every drone; ``"image"`` (the paper's) reads them as the image gives them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import json
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Literal
 
 import torch
@@ -145,6 +146,29 @@ class PredictorConfig:
             )
         if not 0.0 <= self.dropout < 1.0:
             raise ValueError(f"PredictorConfig.dropout must be in [0, 1), got {self.dropout}")
+
+    def to_json(self) -> str:
+        """The configuration as a JSON object (see :meth:`from_json`)."""
+        return json.dumps(asdict(self), sort_keys=True)
+
+    @classmethod
+    def from_json(cls, text: str) -> PredictorConfig:
+        """The configuration written by :meth:`to_json`; ``ValueError`` naming what is wrong
+        (not JSON, an unknown field, a value :meth:`__post_init__` refuses)."""
+        try:
+            values = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"PredictorConfig: not JSON ({exc})") from None
+        if not isinstance(values, dict):
+            kind = type(values).__name__
+            raise ValueError(f"PredictorConfig: expected a JSON object, got {kind}")
+        unknown = set(values) - {f.name for f in fields(cls)}
+        if unknown:
+            raise ValueError(f"PredictorConfig: unknown fields {sorted(unknown)}")
+        for name in ("adain_sites", "field_m"):  # JSON has lists, the config tuples
+            if name in values:
+                values[name] = tuple(values[name])
+        return cls(**values)
 
 
 def predictor_config(

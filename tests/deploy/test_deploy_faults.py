@@ -18,9 +18,10 @@ from deploy_helpers import MARK, cli, free_port_block, survivors
 
 from dronefl.config import load_scenario
 from dronefl.deploy.certs import make_certificates
-from dronefl.deploy.clientapp import save_model
+from dronefl.deploy.clientapp import load_model, save_model
 from dronefl.deploy.processes import port_open, wait_for
 from dronefl.deploy.results import DeploymentMetrics
+from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
 
@@ -49,8 +50,9 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     out = tmp_path / "deploy"
     command = cli(
         "deploy", "up", "--scenario", "case2", "--env", "crop_field", "--seed", "3",
-        "--duration", "60", "--fl-period", "25", "--epochs", "1", "--label-drones", "lower",
-        "--deshrink-labels", "--base-port", str(free_port_block()), "--out", str(out),
+        "--duration", "60", "--fl-period", "25", "--config", "metric-scaffold", "--epochs", "1",
+        "--label-drones", "lower", "--deshrink-labels", "--base-port", str(free_port_block()),
+        "--out", str(out),
         "--pretrained", str(quick_pretrained_case2), "--restart-drones",
     )  # fmt: skip
     said = tmp_path / "launcher.out"
@@ -97,6 +99,20 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert np.isfinite(PseudoLabels.load(drones / "drone-1" / "tracks.npz").position).any()
     assert (drones / "drone-1" / "global.npz").is_file()
     assert not (drones / "drone-3" / "global.npz").exists()
+    # --config metric-scaffold (make demo's setting) reached every process: the drones fly
+    # and install the preset's model (it reads box sizes in proportion to the ground), and
+    # SCAFFOLD's control variates went round: each drone that trained keeps its c_i on its
+    # disk, the cloud keeps c (the mean of the c_i) in its checkpoint.
+    installed = load_model(drones / "drone-1" / "global.npz")
+    assert installed.server_round == 2 and installed.model.box_size == "metric"
+    assert load_model(out / "model" / "pretrained.npz").model == installed.model
+    with np.load(drones / "drone-1" / "control" / "drone_1_round_2.npz") as control:
+        assert any(np.abs(control[k]).max() > 0 for k in control.files)
+    assert not (drones / "drone-3" / "control").exists()
+    cloud_fl = out / "cloud" / "fl" / "global"
+    checkpoint = load_checkpoint(cloud_fl / "checkpoint.npz", cloud_fl / "history.json", "dronefl")
+    assert checkpoint.server_round == 2 and checkpoint.control is not None
+    assert any(bool(v.abs().max() > 0) for v in checkpoint.control.values())
 
     # One gap: from the kill (after step 50) to the restarted drone's first message, which
     # comes after round 1 (played after step 124, the drone dead then) and before round 2.
@@ -147,7 +163,8 @@ def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
         )
     )
     model = tmp_path / "model.npz"
-    save_model(model, build_model(predictor_config("dronefl", 10, 1)).state_dict(), 0)
+    config = predictor_config("dronefl", 10, 1)
+    save_model(model, build_model(config).state_dict(), 0, config)
     base = free_port_block()
     cloud = subprocess.Popen(
         cli("cloud", "--model", str(model), "--tls-dir", str(certs.folder),

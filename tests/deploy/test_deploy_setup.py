@@ -22,16 +22,33 @@ def _run(command, env, timeout=120):
 @pytest.fixture
 def model_file(tmp_path):
     path = tmp_path / "model.npz"
-    save_model(path, build_model(predictor_config("dronefl", 10, 1)).state_dict(), 0)
+    config = predictor_config("dronefl", 10, 1)
+    save_model(path, build_model(config).state_dict(), 0, config)
     return path
 
 
 def test_model_file_of_another_model_is_named(tmp_path, run_env):
     path = tmp_path / "other.npz"
-    save_model(path, {"w": torch.from_numpy(np.zeros(3, dtype=np.float32))}, 0)
+    weights = {"w": torch.from_numpy(np.zeros(3, dtype=np.float32))}
+    save_model(path, weights, 0, predictor_config("dronefl", 10, 1))
     code, lines = _run(cli("drone", "--id", "1", "--model", str(path)), run_env)
     assert code != 0
     assert lines == [f"error: --model: {path} does not hold the DroneFL predictor's weights"]
+
+
+def test_cloud_refuses_a_model_file_of_another_config(model_file, tmp_path, run_env):
+    # model_file holds `ours` (box sizes as the image gives them); metric-scaffold reads them
+    # in proportion to the ground: the same weight shapes, another model. Refused before the
+    # SuperLink starts.
+    out = tmp_path / "cloud"
+    code, lines = _run(
+        cli("cloud", "--model", str(model_file), "--config", "metric-scaffold", "--out", str(out)),
+        run_env,
+    )
+    assert code == 2
+    assert len(lines) == 1 and "--model" in lines[0] and "--config metric-scaffold" in lines[0]
+    assert not (out / "logs").exists()
+    assert survivors(run_env[MARK]) == []
 
 
 def test_port_in_use_is_named(tmp_path, run_env):
