@@ -653,6 +653,9 @@ def table1(
         "centralized fixed dronefl"
     ),
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
+    detector: Annotated[
+        str, typer.Option(help="projection|yolo (yolo: every drone's frame rendered each step).")
+    ] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     labels: LabelsOption = "smoothed",
     label_drones: LabelDronesOption = "all",
@@ -669,18 +672,20 @@ def table1(
 ) -> None:
     """Table I: every scenario x method x seed; markdown, CSV and a plot.
 
-    Finished episodes are reused, so an interrupted run resumes.
+    Finished episodes (of the same settings, the detector included) are reused, so an
+    interrupted run resumes.
     Example: dronefl table1 --seeds "0 1 2" --scenarios "case1 case2 case3" --out runs/table1
     """
     from dronefl.experiments.table1 import run_table1
     from dronefl.experiments.track import TRACK_METHODS
 
+    check_choice(detector, DETECTORS, "--detector")
     specs = _scenario_list(scenarios, "--scenarios")
     chosen = tuple(methods.replace(",", " ").split())
     for method in chosen:
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
-        scenario=specs[0], duration=duration, fl_period=fl_period, labels=labels,
+        scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period, labels=labels,
         label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
         preset=preset, epochs=epochs, lr=lr,
         weights_dtype=weights_dtype,

@@ -201,6 +201,7 @@ BAD_OPTIONS = [
     "pretrain --rounds 0",
     "pretrain --config nope",
     "table1 --config nope",
+    "table1 --detector nope",
     "demo --duration -1",
     "demo --out FILE",
     "detector dataset --train-per-env 0",
