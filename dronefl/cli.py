@@ -341,6 +341,45 @@ def fl_ablation(
     typer.echo((out / "ablation.md").read_text())
 
 
+@app.command("image-baseline")
+def image_baseline(
+    scenario: ScenarioOption = "case1",
+    duration: Annotated[float, typer.Option(help="Seconds recorded in each environment.")] = 600.0,
+    epochs: Annotated[int, typer.Option(help="Training epochs of both models.")] = 30,
+    seed: SeedOption = 0,
+    frame_px: Annotated[int, typer.Option(help="Frame size the image model reads, px.")] = 48,
+    out: OutOption = Path("runs/image_baseline"),
+) -> None:
+    """The paper's centralized baseline, offline: an image model (frames + odometry, end to
+    end) and the box-based large model, both trained on the crop field's first 80 % and scored
+    on its last 20 % and on an orchard run (SPEC §8). Renders every frame once (cached).
+
+    Example: dronefl image-baseline --scenario case1 --out runs/image_baseline
+    """
+    from dronefl.experiments.image_baseline import ImageBaselineConfig, run_image_baseline
+
+    try:
+        config = ImageBaselineConfig(
+            load_scenario(scenario), out, duration, epochs, seed=seed, frame_px=frame_px
+        )
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+    results = run_image_baseline(config)
+    typer.echo(f"{scenario}: mean squared distance (m²) of the prediction, per drone")
+    for model, scores in results["mse"].items():
+        for where, per_drone in scores.items():
+            values = "  ".join(f"drone {d}: {v:7.3f}" for d, v in per_drone.items())
+            typer.echo(f"  {model:6s} {where:20s} {values}")
+    image = results["image_model"]
+    typer.echo(
+        f"image model: {image['parameters']} parameters, {image['train_seconds_per_epoch']:.1f}"
+        f" s per epoch ({image['training_windows']} windows), "
+        f"{image['inference_ms_per_sample']:.2f} ms per sample; box model: "
+        f"{results['box_model']['parameters']} parameters"
+    )
+    typer.echo(f"wrote {out}/results.json")
+
+
 @app.command("fl-altitude")
 def fl_altitude(
     scenario: FlScenarioOption = None,
