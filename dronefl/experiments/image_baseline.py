@@ -14,8 +14,8 @@ and trains, on the first ``train_fraction`` of the crop-field steps of every dro
 Both are scored on the same cells (drone, target, step t -> position at t + 1): every box
 window of the crop field's held-out last steps and of the whole orchard run, as the mean
 squared distance (m^2) per drone. ``results.json`` holds both, the image model's parameter
-count, training seconds per epoch, inference ms per sample and the uplink's JPEG bytes; a plot
-compares them.
+count, training seconds per epoch, inference ms per sample and the uplink's JPEG bytes;
+``image_baseline.png`` compares them.
 """
 
 from __future__ import annotations
@@ -51,6 +51,7 @@ from dronefl.models.windows import (
     split_windows,
 )
 from dronefl.perception.recorded_frames import render_run
+from dronefl.report.fl_plots import plot_image_baseline
 
 #: The two recordings: where the models learn and where they are deployed.
 ENVIRONMENTS = ("crop_field", "orchard")
@@ -259,4 +260,6 @@ def run_image_baseline(config: ImageBaselineConfig) -> dict:
     }  # fmt: skip
     out = Path(config.out)
     atomic_write_json(out / "results.json", results)
-    return json.loads((out / "results.json").read_text())
+    saved = json.loads((out / "results.json").read_text())
+    plot_image_baseline(saved, out / "image_baseline.png")
+    return saved

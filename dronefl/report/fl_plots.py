@@ -1,4 +1,5 @@
-"""Figures of the offline FL experiment: Fig. 5 (test MSE vs round) and Fig. 4 (altitude)."""
+"""Figures of the offline experiments: Fig. 5 (test MSE vs round), Fig. 4 (altitude) and the
+centralized baseline's image model against the box model (crop field -> orchard)."""
 
 from __future__ import annotations
 
@@ -63,6 +64,35 @@ def plot_altitude(curves: dict[str, Curve], path: Path) -> Path:
     ax.set_title("Drone 2 at the same vs a different altitude")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def plot_image_baseline(results: dict, path: Path) -> Path:
+    """Left: each drone's prediction MSE (m^2, log scale) of the image model and of the box
+    model, on the crop field's held-out steps and on the orchard run (``results.json`` of
+    ``dronefl image-baseline``); right: the image model's training loss per epoch."""
+    fig, (bars, loss) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    places = ("crop_field_held_out", "orchard")
+    drones = sorted({d for scores in results["mse"].values() for d in scores[places[0]]}, key=int)
+    x = np.arange(len(drones) * len(places))
+    labels = [f"drone {d}\n{p.split('_')[0]}" for p in places for d in drones]
+    for k, (model, colour) in enumerate((("image", "tab:red"), ("boxes", "black"))):
+        values = [results["mse"][model][p][d] for p in places for d in drones]
+        name = "image model (frames)" if model == "image" else "box model (detector boxes)"
+        bars.bar(x + (k - 0.5) * 0.38, values, 0.38, color=colour, label=name)
+    bars.set_xticks(x, labels, fontsize=7)
+    bars.set_yscale("log")
+    bars.set_ylabel("prediction MSE (m$^2$)")
+    bars.set_title(f"{results['scenario']}: trained in the crop field")
+    bars.legend(fontsize=7)
+    bars.grid(True, axis="y", which="both", alpha=0.3)
+    history = results["image_model"]["train_loss"]
+    loss.plot(np.arange(1, len(history) + 1), history, color="tab:red")
+    loss.set_yscale("log")
+    loss.set_xlabel("epoch")
+    loss.set_ylabel("training loss (m$^2$)")
+    loss.set_title("image model, crop field")
+    loss.grid(True, which="both", alpha=0.3)
     return _save(fig, path)
 
 
