@@ -15,7 +15,7 @@ Both are scored on the same cells (drone, target, step t -> position at t + 1): 
 window of the crop field's held-out last steps and of the whole orchard run, as the mean
 squared distance (m^2) per drone. ``results.json`` holds both, the image model's parameter
 count, training seconds per epoch, inference ms per sample and the uplink's JPEG bytes;
-``image_baseline.png`` compares them.
+``image_baseline.png`` compares them; ``image_model.npz`` holds the image model's weights.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ import torch
 from dronefl.config import Scenario
 from dronefl.experiments.pretrain import PRETRAIN_SEED
 from dronefl.experiments.simulate import simulate
-from dronefl.io import atomic_write_json
+from dronefl.io import atomic_savez, atomic_write_json
 from dronefl.logs import load_run
 from dronefl.models.image import (
     FrameTransformer,
@@ -259,6 +259,7 @@ def run_image_baseline(config: ImageBaselineConfig) -> dict:
         "mse": scores,
     }  # fmt: skip
     out = Path(config.out)
+    atomic_savez(out / "image_model.npz", **{k: v.numpy() for k, v in image.state_dict().items()})
     atomic_write_json(out / "results.json", results)
     saved = json.loads((out / "results.json").read_text())
     plot_image_baseline(saved, out / "image_baseline.png")
