@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import os
+import signal
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -46,13 +47,33 @@ os.environ.setdefault("RAY_gcs_rpc_server_reconnect_timeout_s", "20")
 ENGINE_INTERRUPTED = threading.Event()
 
 
+def _interrupt(signum: int, frame: object) -> None:
+    """Ctrl-C during a simulation: note it and silence Flower's logger, then interrupt as
+    Python's default handler does. Flower's engine then shuts Ray down while its worker threads
+    still wait on the ClientApp actors, and each logs the dead actor's traceback: the
+    consequence of the interrupt, not news (``dronefl`` ends with one line and exit 130)."""
+    ENGINE_INTERRUPTED.set()
+    logging.getLogger("flwr").disabled = True
+    signal.default_int_handler(signum, frame)
+
+
 def _run_engine(**kwargs: object) -> None:
-    """``run_simulation(**kwargs)``, noting a Ctrl-C in :data:`ENGINE_INTERRUPTED`."""
+    """``run_simulation(**kwargs)``, noting a Ctrl-C in :data:`ENGINE_INTERRUPTED`. The
+    Ctrl-C handler is only replaced where Python's own is installed (in the main thread): a
+    process that inherited SIGINT ignored keeps ignoring it."""
+    previous = signal.getsignal(signal.SIGINT)
+    ours = previous is signal.default_int_handler
+    ours = ours and threading.current_thread() is threading.main_thread()
+    if ours:
+        signal.signal(signal.SIGINT, _interrupt)
     try:
         run_simulation(**kwargs)  # type: ignore[arg-type]
     except KeyboardInterrupt:
         ENGINE_INTERRUPTED.set()
         raise
+    finally:
+        if ours:
+            signal.signal(signal.SIGINT, previous)
 
 
 #: Environment variable: how many Ray workers (one CPU each) the simulation engine starts.
