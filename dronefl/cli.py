@@ -1004,8 +1004,6 @@ def cloud(
         load_scenario(scenario)
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
-        if preset not in PRESETS:
-            raise ValueError(f"--config: {preset!r} is not one of {', '.join(PRESETS)}")
         if tls_dir and not Path(tls_dir).is_dir():
             raise FileNotFoundError(f"--tls-dir: {tls_dir} does not exist")
         out = out.resolve()

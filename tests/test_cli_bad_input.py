@@ -203,6 +203,7 @@ BAD_OPTIONS = [
     "table1 --config nope",
     "table1 --detector nope",
     "image-baseline --epochs 0",
+    "cloud --model FILE --config nope",
     "image-baseline --duration 0",
     "image-baseline --scenario nope",
     "demo --duration -1",

@@ -39,6 +39,7 @@ from dronefl.models.image import (
     FrameWindows,
     ImageModelConfig,
     frame_windows,
+    predict_windows,
     train_image_model,
 )
 from dronefl.models.model import build_model, count_parameters, predictor_config
@@ -145,7 +146,6 @@ def _image_training_set(config: ImageBaselineConfig, recording: Recording) -> Fr
     return FrameWindows.concat(parts)
 
 
-@torch.no_grad()
 def image_cell_mse(
     model: FrameTransformer,
     frame_sets: dict[int, FrameWindows],
@@ -154,7 +154,6 @@ def image_cell_mse(
 ) -> dict[int, float]:
     """Mean squared distance (m^2), per drone, of ``model``'s predictions on the cells
     (drone, target, t) of the box windows ``cells``."""
-    model.eval()
     slot = {t: j for j, t in enumerate(target_ids)}
     out = {}
     for windows in cells:
@@ -165,12 +164,7 @@ def image_cell_mse(
         row_of = {int(t): r for r, t in enumerate(data.index[:, -1])}
         rows = np.array([row_of[int(t)] for t in windows.t_index])
         slots = np.array([slot[int(t)] for t in windows.target_ids])
-        predicted = []
-        for start in range(0, len(rows), 256):
-            part = rows[start : start + 256]
-            frames = torch.from_numpy(data.frames[data.index[part]])
-            predicted.append(model(frames, torch.from_numpy(data.odometry[part])).numpy())
-        relative = np.concatenate(predicted)[np.arange(len(rows)), slots]
+        relative = predict_windows(model, data, rows)[np.arange(len(rows)), slots]
         truth = windows.labels[:, 0]  # relative to the same odometry position
         out[drone] = float(((relative - truth) ** 2).sum(-1).mean())
     return out

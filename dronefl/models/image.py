@@ -226,19 +226,27 @@ def train_image_model(
 
 
 @torch.no_grad()
-def evaluate_image_model(
-    model: FrameTransformer, data: FrameWindows, batch_size: int = 256
-) -> dict[int, float]:
-    """Masked MSE (m^2) of ``model`` on ``data``, per drone id."""
+def predict_windows(
+    model: FrameTransformer, data: FrameWindows, rows: np.ndarray, batch_size: int = 256
+) -> np.ndarray:
+    """``model``'s predictions ``(len(rows), N, 2)`` m for the windows ``rows`` of ``data``,
+    in batches of ``batch_size`` (dropout off)."""
     model.eval()
-    sums: dict[int, float] = {}
-    counts: dict[int, float] = {}
-    for start in range(0, len(data), batch_size):
-        rows = np.arange(start, min(start + batch_size, len(data)))
-        frames, odometry, label, mask = _batch(data, rows)
-        squared = (((model(frames, odometry) - label) ** 2).sum(-1) * mask).sum(-1).numpy()
-        for drone in np.unique(data.drone[rows]):
-            mine = data.drone[rows] == drone
-            sums[int(drone)] = sums.get(int(drone), 0.0) + float(squared[mine].sum())
-            counts[int(drone)] = counts.get(int(drone), 0.0) + float(mask[mine].sum())
-    return {d: sums[d] / counts[d] for d in sorted(sums) if counts[d] > 0}
+    out = []
+    for start in range(0, len(rows), batch_size):
+        part = rows[start : start + batch_size]
+        frames = torch.from_numpy(data.frames[data.index[part]])
+        out.append(model(frames, torch.from_numpy(data.odometry[part])).numpy())
+    return np.concatenate(out) if out else np.zeros((0, model.config.n_targets, 2))
+
+
+def evaluate_image_model(model: FrameTransformer, data: FrameWindows) -> dict[int, float]:
+    """Masked MSE (m^2) of ``model`` on ``data``, per drone id."""
+    predicted = predict_windows(model, data, np.arange(len(data)))
+    squared = ((predicted - data.label) ** 2).sum(-1) * data.mask
+    out = {}
+    for drone in np.unique(data.drone):
+        mine = data.drone == drone
+        if data.mask[mine].any():
+            out[int(drone)] = float(squared[mine].sum() / data.mask[mine].sum())
+    return out
