@@ -540,7 +540,14 @@ def detector_figures(
         typer.echo(f"wrote {path}")
 
 
-TrackMethod = Annotated[str, typer.Option("--method", help="centralized|fixed|dronefl")]
+TrackMethod = Annotated[
+    str,
+    typer.Option(
+        "--method",
+        help="centralized|fixed|dronefl|centralized-image (the paper's image baseline; needs "
+        "--detector yolo).",
+    ),
+]
 PretrainedOption = Annotated[
     Path, typer.Option(help="Cache of pretrained models.", callback=writable_folder)
 ]
@@ -688,9 +695,14 @@ def table1(
     scenarios: Annotated[
         str, typer.Option("--scenarios", help="Scenario names or YAML paths, e.g. 'case1 case2'.")
     ] = "case1 case2 case3",
-    methods: Annotated[str, typer.Option("--methods", help="Closed-loop methods.")] = (
-        "centralized fixed dronefl"
-    ),
+    methods: Annotated[
+        str,
+        typer.Option(
+            "--methods",
+            help="Closed-loop methods (default: centralized fixed dronefl; with --detector yolo "
+            "centralized-image fixed dronefl, the paper's image baseline on the frames).",
+        ),
+    ] = "",
     duration: Annotated[float, typer.Option(help="Simulated seconds per episode.")] = 600.0,
     detector: Annotated[
         str, typer.Option(help="projection|yolo (yolo: every drone's frame rendered each step).")
@@ -715,12 +727,12 @@ def table1(
     interrupted run resumes.
     Example: dronefl table1 --seeds "0 1 2" --scenarios "case1 case2 case3" --out runs/table1
     """
-    from dronefl.experiments.table1 import run_table1
+    from dronefl.experiments.table1 import TABLE1_METHODS, run_table1
     from dronefl.experiments.track import TRACK_METHODS
 
     check_choice(detector, DETECTORS, "--detector")
     specs = _scenario_list(scenarios, "--scenarios")
-    chosen = tuple(methods.replace(",", " ").split())
+    chosen = tuple(methods.replace(",", " ").split()) or TABLE1_METHODS[detector]
     for method in chosen:
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
@@ -743,12 +755,20 @@ def pretrain(
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
     preset: PresetOption = "ours",
+    image: Annotated[
+        bool,
+        typer.Option(
+            "--image",
+            help="Also the image model of centralized-image (renders the recording: minutes).",
+        ),
+    ] = False,
     out: OutOption = Path("runs/pretrained"),
 ) -> None:
     """Pretrain the closed loop's models in the crop field (DroneFL by FL, the large
-    centralized model on pooled data), L_p -> L_f = 1, and print each model's prediction
-    error (MSE, m^2) per drone on the held-out last 20 % of the recording. `track` does this
-    on demand (with the same --config).
+    centralized model on pooled data; with --image the paper's image model on the rendered
+    frames), L_p -> L_f = 1, and print each model's prediction error (MSE, m^2) per drone on
+    the held-out last 20 % of the recording. `track` does this on demand (with the same
+    --config).
 
     Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
     """
@@ -764,6 +784,7 @@ def pretrain(
         specs = [
             PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration, preset=preset)
             for kind in KINDS
+            if image or kind != "image"
         ]
     except ValueError as exc:
         raise fail(str(exc)) from None
@@ -780,7 +801,7 @@ def pretrain(
             f"{pretraining.kind:12s} held-out MSE {mean:.4g} m^2 "
             f"(drones {' / '.join(map(str, per_drone))}: {errors})"
         )
-        typer.echo(f"wrote {pretraining.settings(out).checkpoint_path}")
+        typer.echo(f"wrote {pretraining.model_path(out)}")
 
 
 @app.command()

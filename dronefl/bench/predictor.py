@@ -4,6 +4,8 @@ The data are real: Case 3 recorded under the scripted pilot in the crop field, s
 (60 m, all 6 targets), cut into the closed loop's windows (L_p = 10, L_f = 1). The reference is
 the same architecture built from PyTorch's stock eager ``nn.TransformerEncoderLayer`` /
 ``nn.TransformerDecoder`` (same embedding, positions, AdaIN and head), timed in the same run.
+The paper's centralized baseline, the image model, is timed on the same number of windows and
+targets (:func:`bench_image`), on random pixels: its cost does not depend on what they show.
 """
 
 from __future__ import annotations
@@ -24,6 +26,13 @@ from dronefl.bench.timing import latency, time_interleaved, with_reference
 from dronefl.config import Scenario
 from dronefl.experiments.simulate import simulate
 from dronefl.logs import load_run
+from dronefl.models.image import (
+    FrameTransformer,
+    FrameWindows,
+    ImageModelConfig,
+    ImageTraining,
+    train_image_model,
+)
 from dronefl.models.model import (
     AltitudeAdaIN,
     PredictorConfig,
@@ -228,3 +237,53 @@ def bench_training(
         reading = measure_energy(lambda: epoch(models["ours"], seed=0), rounds)
         ours = replace(ours, energy_reading=reading)
     return Benchmarks(training_epoch=ours, centralized_training_epoch=centralized)
+
+
+@_one_torch_thread
+def bench_image(n_windows: int, n_targets: int, calls: int, rounds: int) -> Benchmarks:
+    """The paper's centralized baseline, the image model (``n_targets`` slots, L_p = 10
+    frames of 48 px and odometry), eager torch, 1 thread:
+
+    * ``image_inference``: one drone step (one window), ms, ``rounds`` x ``calls`` calls;
+    * ``image_training_epoch``: one epoch over ``n_windows`` windows (Adam, batch 64,
+      masked MSE), s, ``rounds`` epochs after a warm-up batch.
+
+    The frames are random pixels (rendering thousands of frames would dominate the benchmark;
+    the model's cost does not depend on the pixels' values)."""
+    torch.manual_seed(0)
+    config = ImageModelConfig(n_targets, PAST_STEPS)
+    model = FrameTransformer(config).eval()
+    rng = np.random.default_rng(0)
+    px = config.frame_px
+    frames = torch.from_numpy(rng.integers(0, 256, (1, PAST_STEPS, px, px, 3), dtype=np.uint8))
+    odometry = torch.from_numpy(rng.random((1, PAST_STEPS, 3), dtype=np.float32))
+    with torch.inference_mode():
+        step = time_interleaved({"image": lambda: model(frames, odometry)}, calls, rounds)
+    data = FrameWindows(
+        frames=rng.integers(0, 256, (n_windows + PAST_STEPS, px, px, 3), dtype=np.uint8),
+        index=np.arange(n_windows)[:, None] + np.arange(PAST_STEPS)[None, :],
+        odometry=rng.random((n_windows, PAST_STEPS, 3), dtype=np.float32),
+        label=rng.normal(size=(n_windows, n_targets, 2)).astype(np.float32),
+        mask=np.ones((n_windows, n_targets), dtype=bool),
+        drone=np.ones(n_windows, dtype=np.int64),
+    )
+    training = ImageTraining(epochs=1)
+    train_image_model(model, data.subset(np.arange(min(64, n_windows))), training)  # warm-up
+    epochs = np.array(
+        [train_image_model(model, data, training).seconds_per_epoch for _ in range(rounds)]
+    )
+    threads = torch.get_num_threads()
+    parameters = count_parameters(model)
+    what = f"{n_targets} targets; centralized image model (10 frames of {px} px + odometry)"
+    return Benchmarks(
+        image_inference=replace(
+            latency(f"one drone step, {what}, eager torch", step["image"], "ms", threads),
+            targets=n_targets,
+            parameters=parameters,
+        ),
+        image_training_epoch=replace(
+            latency(f"one epoch of {n_windows} windows, batch 64, {what}", epochs, "s", threads),
+            windows=n_windows,
+            parameters=parameters,
+        ),
+    )

@@ -168,6 +168,8 @@ class Benchmarks:
     centralized_inference: BenchFigure | None = omitted_when_none()
     training_epoch: BenchFigure | None = omitted_when_none()
     centralized_training_epoch: BenchFigure | None = omitted_when_none()
+    image_inference: BenchFigure | None = omitted_when_none()
+    image_training_epoch: BenchFigure | None = omitted_when_none()
     detector: BenchFigure | None = omitted_when_none()
     render: BenchFigure | None = omitted_when_none()
     centralized_uplink: UplinkFigure | None = omitted_when_none()

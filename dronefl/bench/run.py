@@ -71,7 +71,10 @@ def _predictor(ctx: BenchContext) -> Benchmarks:
             ctx.scenario, Path(tmp), s.record_seconds, s.windows_per_target
         )
     inference = predictor.bench_inference(step, s.inference_calls, s.inference_rounds, ctx.meter)
-    return inference.merged(predictor.bench_training(data, s.training_rounds, ctx.meter))
+    training = predictor.bench_training(data, s.training_rounds, ctx.meter)
+    n_targets = int(step["boxes"].shape[1])
+    image = predictor.bench_image(len(data), n_targets, s.inference_calls, s.training_rounds)
+    return inference.merged(training).merged(image)
 
 
 def _vision(ctx: BenchContext) -> Benchmarks:

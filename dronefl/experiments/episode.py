@@ -136,7 +136,9 @@ class EpisodeMetrics:
     ``sim_seconds`` / ``wall_seconds`` / ``fl_seconds`` in s; ``planner_ms_per_step`` in ms;
     ``gating_rejections`` and ``track_resets`` counts of the fusion; ``centralized_inputs`` says in
     words what the centralized baseline's drones sent (``None`` for the other methods); ``config``
-    the episode's settings as given."""
+    the episode's settings as given; ``model_input`` what the method's model reads (``boxes`` or
+    ``frames``) and ``model_parameters`` its trainable parameters (``None``: not recorded, as in
+    episodes written before 2026-12-05 and the deployment's)."""
 
     scenario: str
     scenario_hash: str
@@ -157,6 +159,8 @@ class EpisodeMetrics:
     track_resets: int
     centralized_inputs: str | None
     config: dict[str, str | int | float | bool]
+    model_input: str = field(default="boxes", kw_only=True)
+    model_parameters: int | None = field(default=None, kw_only=True)
 
     @property
     def realtime_factor(self) -> float:

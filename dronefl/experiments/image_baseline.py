@@ -38,8 +38,10 @@ from dronefl.models.image import (
     FrameTransformer,
     FrameWindows,
     ImageModelConfig,
-    frame_windows,
+    ImageTraining,
+    chronological_rows,
     predict_windows,
+    recorded_frame_windows,
     train_image_model,
 )
 from dronefl.models.model import build_model, count_parameters, predictor_config
@@ -113,8 +115,8 @@ def record(config: ImageBaselineConfig, environment: str) -> Recording:
     rendered = render_run(folder, config.frame_px, progress=config.progress)
     every = WindowSpec(config.past_steps, 1, relative=True, stride=1, train_fraction=1.0)
     strided = dataclasses.replace(every, stride=config.stride, train_fraction=config.train_fraction)
-    boxes_train, boxes_test, frame_sets = [], [], {}
-    for i, drone_id in enumerate(rendered.drone_ids):
+    boxes_train, boxes_test = [], []
+    for drone_id in rendered.drone_ids:
         log = logs[drone_id]
         labels = ground_truth_labels(log, truth)
         n_steps = len(log.t)
@@ -124,11 +126,9 @@ def record(config: ImageBaselineConfig, environment: str) -> Recording:
             boxes_test.append(build_windows(log, labels, every, (split, n_steps)))
         else:  # never trained on: every step is scored
             boxes_test.append(build_windows(log, labels, every, (0, n_steps)))
-        visible = log.detected & log.assigned[None, :]
-        frame_sets[drone_id] = frame_windows(
-            rendered.frames[i], log.odometry.astype(np.float64), visible,
-            truth.target_position, drone_id, config.past_steps,
-        )  # fmt: skip
+    frame_sets = recorded_frame_windows(
+        logs, truth, rendered.frames, rendered.drone_ids, config.past_steps
+    )
     return Recording(boxes_train, boxes_test, frame_sets, float(rendered.jpeg_bytes.mean() / 1e3))
 
 
@@ -137,12 +137,8 @@ def _image_training_set(config: ImageBaselineConfig, recording: Recording) -> Fr
     visible to learn from, all drones."""
     parts = []
     for data in recording.frame_sets.values():
-        n_steps = int(data.index[:, -1].max()) + 2
-        split = int(n_steps * config.train_fraction)
-        end = data.index[:, -1]
-        usable = data.mask.any(axis=1) & (end % config.stride == 0)
-        rows = np.flatnonzero((end < split - 1) & usable)
-        parts.append(data.subset(rows))
+        train, _ = chronological_rows(data, config.stride, config.train_fraction)
+        parts.append(data.subset(train))
     return FrameWindows.concat(parts)
 
 
@@ -206,7 +202,7 @@ def run_image_baseline(config: ImageBaselineConfig) -> dict:
     image = FrameTransformer(image_config)
     training = _image_training_set(config, crop)
     image_stats = train_image_model(
-        image, training, config.epochs, config.lr, config.batch_size, config.seed
+        image, training, ImageTraining(config.epochs, config.lr, config.batch_size, config.seed)
     )
     large = build_model(predictor_config("large", config.past_steps, 1), seed=config.seed)
     started = time.perf_counter()

@@ -6,13 +6,19 @@ ground-truth labels and windows L_p -> L_f = 1:
 
 * ``dronefl``: the position-invariant AdaIN model by federated learning (FedAvg on Flower);
   the fixed-distributed and DroneFL episodes both start from it;
-* ``centralized``: the large model on the pooled windows of every drone, in the cloud.
+* ``centralized``: the large model on the pooled windows of every drone, in the cloud;
+* ``image``: the paper's centralized baseline, the image model
+  (:class:`~dronefl.models.image.FrameTransformer`) on every drone's frames rendered through
+  the JPEG uplink (:func:`~dronefl.perception.recorded_frames.render_run`, cached beside the
+  recording), trained on the first 80 % of the steps (the setting of ``dronefl
+  image-baseline``) and scored on the rest (:mod:`dronefl.experiments.pretrain_image`).
 
 Results are cached under ``<folder>/<scenario name>/`` and keyed by content: the recording by a
 hash of the scenario, the recording seed and duration and of the source code that records it
 (:data:`RECORDING_CODE`; ``data-<hash>/``), each model by a hash of that, of every training
-setting and of the code that trains (:data:`TRAINING_CODE`; ``<kind>-<hash>/checkpoint.npz``),
-so an edited scenario, a changed setting or changed code never reuses stale weights.
+setting and of the code that trains (:data:`TRAINING_CODE`; ``<kind>-<hash>/checkpoint.npz``;
+the image model: :data:`IMAGE_TRAINING_CODE`, ``image-<hash>/image_model.npz``), so an edited
+scenario, a changed setting or changed code never reuses stale weights.
 Pretraining runs its own Flower simulation and must be done before an episode starts its
 session (:func:`pretrained_state`).
 """
@@ -30,22 +36,30 @@ import torch
 
 from dronefl.config import Scenario
 from dronefl.experiments.fl_offline import run_centralized
+from dronefl.experiments.pretrain_image import (
+    IMAGE_PRETRAINING,
+    IMAGE_TRAIN_FRACTION,
+    pretrain_image,
+)
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import load_checkpoint, load_history
 from dronefl.fl.records import PRESETS, FlSettings
 from dronefl.fl.simulation import run_federated
+from dronefl.models.image import ImageModelConfig
 from dronefl.models.model import PredictorConfig
 from dronefl.progress import progress_bar
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 PRETRAIN_SEED = 1000
-KINDS = ("dronefl", "centralized")
+KINDS = ("dronefl", "centralized", "image")
 #: The package's files (paths relative to ``dronefl/``; a folder means its ``*.py``) that make
 #: the crop-field recording and those that train on it: a change to any of them changes the
 #: cache key (a refactor too: it re-pretrains once, 3-4 min, rather than risk stale weights).
 RECORDING_CODE = ("sim", "perception", "config.py", "logs.py", "experiments/simulate.py",
                   "assets/projection_noise.json")  # fmt: skip
 TRAINING_CODE = ("models", "fl", "experiments/fl_offline.py", "experiments/pretrain.py")
+#: The files that train the image model (its frames are part of the recording's key).
+IMAGE_TRAINING_CODE = ("models/image.py", "logs.py", "experiments/pretrain_image.py")
 
 
 @dataclass(frozen=True)
@@ -82,10 +96,13 @@ class PretrainSpec:
         )  # fmt: skip
 
     def settings(self, folder: Path) -> FlSettings:
-        """The Flower/centralized training settings, writing under ``folder``."""
+        """The Flower/centralized training settings, writing under ``folder`` (the ``image``
+        kind has none: its training is :data:`IMAGE_PRETRAINING`, its folder :meth:`image_dir`)."""
+        if self.kind == "image":
+            raise ValueError("the image model is not trained by Flower: see image_dir")
         root = Path(folder) / self.scenario.name
         unset = FlSettings(
-            run_dir=str(root / f"data-{self.data_key}"),
+            run_dir=str(self.data_dir(folder)),
             out_dir="",
             method=self.kind,
             rounds=self.rounds,
@@ -102,15 +119,41 @@ class PretrainSpec:
 
     @property
     def model(self) -> PredictorConfig:
-        """The architecture pretrained (and flown by the episodes that start from it)."""
+        """The architecture pretrained (and flown by the episodes that start from it); the
+        ``image`` kind's is :meth:`image_model`."""
+        if self.kind == "image":
+            raise ValueError("the image model is not a trajectory predictor: see image_model")
         return self.settings(Path(".")).model
+
+    @property
+    def image_model(self) -> ImageModelConfig:
+        """The image model's architecture: a slot per target of the scenario, L_p frames."""
+        return ImageModelConfig(len(self.scenario.target_ids), self.past_steps)
+
+    def data_dir(self, folder: Path) -> Path:
+        """Where the crop-field recording (and its rendered frames) is cached."""
+        return Path(folder) / self.scenario.name / f"data-{self.data_key}"
+
+    def image_dir(self, folder: Path) -> Path:
+        """Where the ``image`` kind's weights and ``pretrain.json`` are cached."""
+        key = _digest(
+            [self.data_key, self.stride, IMAGE_TRAIN_FRACTION,
+             dataclasses.asdict(self.image_model), dataclasses.asdict(IMAGE_PRETRAINING),
+             package_digest(IMAGE_TRAINING_CODE)]
+        )  # fmt: skip
+        return Path(folder) / self.scenario.name / f"image-{key}"
+
+    def model_path(self, folder: Path) -> Path:
+        """The file that holds the pretrained weights."""
+        if self.kind == "image":
+            return self.image_dir(folder) / "image_model.npz"
+        return self.settings(folder).checkpoint_path
 
 
 def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[str, torch.Tensor]:
     """Record the crop field (if not yet recorded) and train ``spec.kind``; returns its
     weights. Runs a Flower simulation for ``dronefl``: never call it inside another one."""
-    settings = spec.settings(folder)
-    data = Path(settings.run_dir)
+    data = spec.data_dir(folder)
     if not (data / "ground_truth.npz").is_file():
         simulate(
             spec.scenario,
@@ -121,6 +164,9 @@ def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[st
             progress=progress,
             plot=False,
         )
+    if spec.kind == "image":
+        return pretrain_image(spec, folder, progress)
+    settings = spec.settings(folder)
     name = f"pretrain {spec.scenario.name} {spec.kind}"
     with progress_bar(name, spec.rounds, progress) as advance:
         train = run_federated if spec.kind == "dronefl" else run_centralized
@@ -132,6 +178,8 @@ def pretrained_state(
     spec: PretrainSpec, folder: Path, progress: bool = True
 ) -> dict[str, torch.Tensor]:
     """The cached pretrained weights of ``spec``, pretraining them if missing."""
+    if spec.kind == "image":
+        return pretrain(spec, folder, progress)  # cached weights are returned as they are
     settings = spec.settings(folder)
     if settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
@@ -145,7 +193,11 @@ def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
     held-out part of the crop-field recording: the chronologically last 1 - train_fraction
     (20 %) of each drone's windows, which pretraining never trains on. Read from the last
     round of the run's history (:class:`~dronefl.fl.checkpoint.CheckpointError` when it is
-    missing or short of ``rounds``; ``ValueError`` when no drone evaluated in that round)."""
+    missing or short of ``rounds``; ``ValueError`` when no drone evaluated in that round).
+    The ``image`` kind's is the masked MSE of its held-out windows, from ``pretrain.json``."""
+    if spec.kind == "image":
+        report = json.loads((spec.image_dir(folder) / "pretrain.json").read_text())
+        return {int(d): float(v) for d, v in sorted(report["held_out_mse"].items())}
     settings = spec.settings(folder)
     history = load_history(settings.history_path, settings.rounds)
     if not history or not history[-1].test_mse:

@@ -16,7 +16,11 @@ RTS-smoothed over the whole past by default; ground truth only as an ablation):
   on the pooled data. With ``--detector yolo`` the raw inputs are each drone's camera frame
   (JPEG, :class:`dronefl.perception.uplink.CloudVisionDetector`: the cloud runs the detector
   on the decoded frame) and its odometry, sent every step; with the projection detector they
-  are the boxes and odometry (the output says so). Their bytes are counted.
+  are the boxes and odometry (the output says so). Their bytes are counted;
+* ``centralized-image`` (``--detector yolo`` only): the paper's own centralized baseline. The
+  drones send their JPEG frames and odometry (:class:`dronefl.perception.uplink.FrameUplink`),
+  nothing detects, and the cloud's image model predicts every assigned target from each drone's
+  last L_p frames and retrains on the pooled frames (:mod:`dronefl.learners.image`).
 
 All models start from the same crop-field pretraining (:mod:`dronefl.experiments.pretrain`,
 done before the episode's Flower session starts); the episode runs in the orchard by default.
@@ -58,7 +62,7 @@ from dronefl.fl.records import PRESETS, WEIGHT_DTYPES
 from dronefl.fl.simulation import run_session
 from dronefl.learners import LEARNERS, Learner, LearnerSetup
 from dronefl.learners.federated import session_settings
-from dronefl.models.model import build_model
+from dronefl.models.model import build_model, count_parameters
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.perception import make_detector
@@ -166,6 +170,11 @@ class TrackConfig:
             )
         if self.fusion not in FUSION_METHODS:
             raise ValueError(f"--fusion: {self.fusion!r} is not one of {', '.join(FUSION_METHODS)}")
+        if self.learner.model_input == "frames" and self.detector != "yolo":
+            raise ValueError(
+                f"--method {self.method}: its model reads camera frames, which only the vision "
+                "path renders: use --detector yolo"
+            )
         if self.weights_dtype not in WEIGHT_DTYPES:
             raise ValueError(
                 f"--weights-dtype: {self.weights_dtype!r} is not one of {', '.join(WEIGHT_DTYPES)}"
@@ -303,12 +312,19 @@ class ClosedLoop:
     ) -> None:
         scenario = config.scenario
         self.config, self.scenario, self.learner = config, scenario, learner
-        self.model_config = config.pretrain_spec().model
-        shared = self._predictor(state)
-        self.predictors = {d.id: shared for d in scenario.drones}
+        self.frames_in = learner.model_input == "frames"  # the learner predicts from frames
+        self.predictors: dict[int, TrajectoryPredictor] = {}
+        if not self.frames_in:
+            self.model_config = config.pretrain_spec().model
+            shared = self._predictor(state)
+            self.predictors = {d.id: shared for d in scenario.drones}
         self.world = saved.world if saved else World(scenario, config.environment, config.seed)
         self.cloud_vision = learner.cloud_predicts and config.detector == "yolo"
-        if self.cloud_vision:
+        if self.frames_in:
+            from dronefl.perception.uplink import FrameUplink
+
+            self.detector = FrameUplink.for_world(self.world, learner.frame_px)
+        elif self.cloud_vision:
             from dronefl.perception.uplink import CloudVisionDetector
 
             self.detector = CloudVisionDetector.for_world(self.world)
@@ -372,6 +388,8 @@ class ClosedLoop:
         ):
             detections = self.detector.detect(view)
             record.append(odometry, detections)
+            if self.frames_in:
+                self.learner.receive(i, self.detector.last_frame)
             if self.learner.cloud_predicts:
                 self._send_raw_inputs(k, record, odometry.vector, detections)
             measurements += self._predict(k, i, record)
@@ -400,11 +418,13 @@ class ClosedLoop:
         if update is None:
             return
         # A drone that had no label sat the round out: it keeps the model it flies (the
-        # round's model learnt nothing from it and may have forgotten its altitude).
-        new = self._predictor(update.state)
-        for record, own in zip(self.records, labels, strict=True):
-            if np.isfinite(own).any() or self.learner.cloud_predicts:
-                self.predictors[record.drone_id] = new
+        # round's model learnt nothing from it and may have forgotten its altitude). The
+        # image model predicts in the cloud, inside its learner.
+        if not self.frames_in:
+            new = self._predictor(update.state)
+            for record, own in zip(self.records, labels, strict=True):
+                if np.isfinite(own).any() or self.learner.cloud_predicts:
+                    self.predictors[record.drone_id] = new
         seconds = time.perf_counter() - started
         self.fl_seconds += seconds
         for way, per_drone in (("down", update.weight_bytes_down), ("up", update.weight_bytes_up)):
@@ -435,11 +455,17 @@ class ClosedLoop:
         return TrajectoryPredictor(model, runtime=self.config.runtime)
 
     def _predict(self, k: int, i: int, record: OnboardRecord) -> list[PositionMeasurement]:
-        """Drone ``i``'s predictions of its assigned targets as the cloud receives them."""
-        window = record.window(self.config.past_steps)
-        if window is None:
-            return []
-        predicted = self.predictors[record.drone_id].predict(*window)[:, 0]  # (n_assigned, 2) m
+        """Drone ``i``'s predictions of its assigned targets as the cloud receives them (the
+        image model's, made in the cloud, for a method whose model reads frames)."""
+        if self.frames_in:
+            predicted = self.learner.predict(i, record)  # (n_assigned, 2) m
+            if predicted is None:
+                return []
+        else:
+            window = record.window(self.config.past_steps)
+            if window is None:
+                return []
+            predicted = self.predictors[record.drone_id].predict(*window)[:, 0]
         assigned = record.target_ids[record.assigned]
         seen = np.isfinite(predicted).all(axis=1)
         ids, positions = tuple(int(t) for t in assigned[seen]), predicted[seen]
@@ -455,8 +481,8 @@ class ClosedLoop:
         return measurements
 
     def _send_raw_inputs(self, k: int, record: OnboardRecord, odometry, detections) -> None:
-        """The centralized baseline's uplink: odometry and boxes, or odometry and the JPEG
-        frame when the cloud detects."""
+        """The centralized baselines' uplink: odometry and boxes, or odometry and the JPEG
+        frame when the cloud detects or its model reads frames."""
         boxes = () if self.cloud_vision else detections  # in the cloud already
         raw = raw_inputs_message(record.drone_id, k, odometry, boxes)
         kind = "odometry" if self.cloud_vision else "raw_inputs"
@@ -578,6 +604,8 @@ def _metrics(config: TrackConfig, loop: ClosedLoop, wall: float) -> EpisodeMetri
         track_resets=int(loop.fuser.resets),
         centralized_inputs=_centralized_inputs(loop),
         config=config.describe(),
+        model_input=loop.learner.model_input,
+        model_parameters=_parameters(loop),
     )
 
 
@@ -585,6 +613,19 @@ def _centralized_inputs(loop: ClosedLoop) -> str | None:
     """What the centralized baseline's drones send, in words (None for the other methods)."""
     if not loop.learner.cloud_predicts:
         return None
+    if loop.frames_in:
+        return (
+            f"JPEG camera frames (quality {loop.detector.quality}) and odometry of every drone; "
+            f"no detector: the cloud's image model reads the frames at {loop.learner.frame_px} px"
+        )
     if loop.cloud_vision:
         return f"JPEG camera frames (quality {loop.detector.quality}) and odometry of every drone"
     return "boxes and odometry of every drone (no images: the projection detector is in use)"
+
+
+def _parameters(loop: ClosedLoop) -> int:
+    """Trainable parameters of the model the method flies (the image model's, in the cloud,
+    for a method whose model reads frames)."""
+    if loop.frames_in:
+        return loop.learner.parameters
+    return count_parameters(next(iter(loop.predictors.values())).model)

@@ -10,7 +10,10 @@ attributes say what the episode must provide:
 * ``federated``: whether its updates are Flower rounds (the episode then runs inside one Flower
   session and hands the learner the session's round driver);
 * ``cloud_predicts``: whether the drones send their raw inputs and the cloud predicts (the
-  centralized baseline) instead of each drone predicting on board.
+  centralized baselines) instead of each drone predicting on board;
+* ``model_input``: what the method's model reads: ``boxes`` (detections and odometry) or
+  ``frames`` (camera frames and odometry: the learner then receives every frame and predicts
+  itself, as :class:`~dronefl.learners.image.CentralizedImageLearner`).
 
 Adding a method is one subclass here and one line in :data:`dronefl.learners.LEARNERS`.
 """
@@ -91,6 +94,7 @@ class Learner(ABC):
     model_kind: ClassVar[str] = "dronefl"
     federated: ClassVar[bool] = False
     cloud_predicts: ClassVar[bool] = False
+    model_input: ClassVar[str] = "boxes"
 
     def __init__(self, setup: LearnerSetup) -> None:
         self.setup = setup

@@ -11,6 +11,10 @@ the windows it learns from (:class:`FrameWindows`, :func:`frame_windows`) and it
       -> transformer encoder x n_layers -> last step (B, d)
       -> linear head (N slots x 2) x z_t / 50 m                          (B, N, 2) m
 
+The image model trains with its own setting (:class:`ImageTraining`: Adam, 1e-3, batches of 64),
+in the crop field for 30 epochs (``dronefl image-baseline``; the closed loop's pretraining) and
+for E epochs per update in the closed loop.
+
 Output slot ``j`` is the scenario's ``j``-th target: its position at ``t + 1`` relative to the
 drone's odometry position at ``t``. The frame says where each target is only through the colour
 of its vehicle, so the model must learn detection, identity and motion at once; the head is
@@ -22,17 +26,30 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import nn
 
+from dronefl.logs import GroundTruth, OnboardLog
 from dronefl.models.model import sinusoidal_positions
 from dronefl.models.windows import ALTITUDE_SCALE_M
 
 #: Odometry features per step: altitude / ALTITUDE_SCALE_M, vx, vy (m/s).
 ODOMETRY_FEATURES = 3
+
+
+@dataclass(frozen=True)
+class ImageTraining:
+    """How the image model trains: Adam at ``lr`` on batches of ``batch_size`` windows for
+    ``epochs`` passes (shuffled with ``seed``); set a priori (the paper gives none), not tuned."""
+
+    epochs: int = 30
+    lr: float = 1e-3
+    batch_size: int = 64
+    seed: int = 0
 
 
 @dataclass(frozen=True)
@@ -161,13 +178,54 @@ def frame_windows(
     label = target_position[ends + 1] - odometry[ends, None, 0:2]
     mask = visible[ends] & np.isfinite(label).all(axis=-1)
     index = ends[:, None] + np.arange(-past_steps + 1, 1)[None, :]
-    features = np.stack(
-        [odometry[:, 2] / ALTITUDE_SCALE_M, odometry[:, 3], odometry[:, 4]], axis=-1
-    ).astype(np.float32)
+    features = odometry_features(odometry)
     return FrameWindows(
         frames, index, features[index], np.nan_to_num(label).astype(np.float32), mask,
         np.full(len(ends), drone_id),
     )  # fmt: skip
+
+
+def odometry_features(odometry: np.ndarray) -> np.ndarray:
+    """The model's odometry input ``(K, 3)`` float32 from the log's odometry ``(K, 12)`` (x, y,
+    z, vx, vy, ...): ``[z / ALTITUDE_SCALE_M, vx, vy]``."""
+    odometry = np.asarray(odometry)
+    return np.stack(
+        [odometry[:, 2] / ALTITUDE_SCALE_M, odometry[:, 3], odometry[:, 4]], axis=-1
+    ).astype(np.float32)
+
+
+def recorded_frame_windows(
+    logs: dict[int, OnboardLog],
+    truth: GroundTruth,
+    frames: np.ndarray,
+    drone_ids: tuple[int, ...],
+    past_steps: int,
+) -> dict[int, FrameWindows]:
+    """Every drone's windows of a recorded run (one ending at every step), labelled by the
+    truth: ``frames`` ``(M, K, P, P, 3)`` in ``drone_ids`` order; a slot counts where the drone
+    detected its assigned target at t (the mask the model learns from)."""
+    out = {}
+    for i, drone_id in enumerate(drone_ids):
+        log = logs[drone_id]
+        out[drone_id] = frame_windows(
+            frames[i], log.odometry.astype(np.float64), log.detected & log.assigned[None, :],
+            truth.target_position, drone_id, past_steps,
+        )  # fmt: skip
+    return out
+
+
+def chronological_rows(
+    data: FrameWindows, stride: int, train_fraction: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of one drone's every-step windows ``data`` (:func:`recorded_frame_windows`)
+    with something to learn from, split in time: every ``stride``-th window whose label lies
+    in the first ``train_fraction`` of the steps (training), and every window after (held
+    out)."""
+    end = data.index[:, -1]
+    split = int((end.max() + 2) * train_fraction)
+    usable = data.mask.any(axis=1)
+    train = np.flatnonzero((end < split - 1) & usable & (end % stride == 0))
+    return train, np.flatnonzero((end >= split - 1) & usable)
 
 
 @dataclass(frozen=True)
@@ -196,20 +254,20 @@ def _masked_mse(predicted: torch.Tensor, label: torch.Tensor, mask: torch.Tensor
 def train_image_model(
     model: FrameTransformer,
     data: FrameWindows,
-    epochs: int,
-    lr: float = 1e-3,
-    batch_size: int = 64,
-    seed: int = 0,
+    training: ImageTraining,
+    on_epoch: Callable[[int], None] | None = None,
 ) -> ImageTrainStats:
-    """Adam on the masked MSE for ``epochs`` passes over ``data`` (shuffled with ``seed``)."""
+    """Adam on the masked MSE over ``data`` as ``training`` says (a fresh optimiser);
+    ``on_epoch(epoch)`` after each epoch (1, 2, ...)."""
     if len(data) == 0:
         raise ValueError("no training windows")
-    rng = np.random.default_rng(seed)
-    torch.manual_seed(seed)
-    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    rng = np.random.default_rng(training.seed)
+    torch.manual_seed(training.seed)
+    optimizer = torch.optim.Adam(model.parameters(), lr=training.lr)
     losses, started = [], time.perf_counter()
     model.train()
-    for _ in range(epochs):
+    batch_size = training.batch_size
+    for _ in range(training.epochs):
         total, weight = 0.0, 0.0
         order = rng.permutation(len(data))
         for start in range(0, len(data), batch_size):
@@ -221,8 +279,10 @@ def train_image_model(
             n = float(mask.sum())
             total, weight = total + loss.item() * n, weight + n
         losses.append(total / max(weight, 1.0))
+        if on_epoch is not None:
+            on_epoch(len(losses))
     model.eval()
-    return ImageTrainStats(tuple(losses), (time.perf_counter() - started) / epochs)
+    return ImageTrainStats(tuple(losses), (time.perf_counter() - started) / training.epochs)
 
 
 @torch.no_grad()

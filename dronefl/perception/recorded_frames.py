@@ -5,8 +5,9 @@ target's position and heading at each step, which is all the renderer draws (the
 straight down, yaw 0). :func:`render_run` draws every drone's frame of every step at the
 detector size, sends it through the uplink's JPEG round trip (:func:`~dronefl.perception.uplink.
 encode_jpeg` at ``quality``, bytes counted) and keeps the decoded frame downscaled to
-``frame_px`` pixels (area average), the image model's input. The result is cached in the run
-folder (``frames_<px>px_q<quality>.npz``), so a run is rendered once.
+``frame_px`` pixels (:func:`~dronefl.perception.uplink.downscale`), the image model's input.
+The result is cached in the run folder (``frames_<px>px_q<quality>.npz``), so a run is
+rendered once.
 """
 
 from __future__ import annotations
@@ -15,13 +16,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from dronefl.config import parse_scenario
 from dronefl.io import atomic_savez
 from dronefl.logs import load_run
 from dronefl.perception.render import SceneRenderer
-from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, decode_jpeg, encode_jpeg
+from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, decode_jpeg, downscale, encode_jpeg
 from dronefl.progress import progress_bar
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
@@ -77,10 +77,7 @@ def render_run(
                     camera = np.array([*truth.drone_position[step, i], truth.drone_altitude[i]])
                     data = encode_jpeg(renderer.render(camera, 0.0, targets), quality)
                     jpeg_bytes[i, step] = len(data)
-                    small = Image.fromarray(decode_jpeg(data)).resize(
-                        (frame_px, frame_px), Image.Resampling.BOX
-                    )
-                    frames[i, step] = np.asarray(small)
+                    frames[i, step] = downscale(decode_jpeg(data), frame_px)
                 advance()
     finally:
         renderer.close()

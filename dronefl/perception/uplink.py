@@ -4,7 +4,9 @@ In the centralized baseline a drone does not detect on board. Every step (0.2 s,
 encodes its 640 x 640 detector frame as JPEG and sends it up; the cloud decodes the frame and
 runs the frozen YOLO detector on it. The cloud's detections therefore come from the decoded JPEG,
 and the JPEG bytes are what the baseline's uplink costs. :class:`CloudVisionDetector` plays both
-sides behind the :class:`~dronefl.perception.base.Detector` interface.
+sides behind the :class:`~dronefl.perception.base.Detector` interface. The paper's own baseline
+runs no detector: its cloud feeds the decoded frames, downscaled (:func:`downscale`), to an image
+model; :class:`FrameUplink` plays that uplink behind the same interface.
 
 JPEG is Pillow's baseline encoder with its default 4:2:0 chroma subsampling, the same encoder and
 settings the detector's training frames were stored with (``jpeg_quality`` 95 in
@@ -82,6 +84,14 @@ def decode_jpeg(data: bytes) -> np.ndarray:
         raise ValueError(f"data: not a readable JPEG image ({exc})") from None
 
 
+def downscale(image: np.ndarray, frame_px: int) -> np.ndarray:
+    """``image`` ``(H, W, 3)`` uint8 averaged down to ``(frame_px, frame_px, 3)`` uint8 (box
+    filter: each output pixel is the mean of the input pixels it covers)."""
+    _check_frame(image)
+    small = Image.fromarray(image).resize((frame_px, frame_px), Image.Resampling.BOX)
+    return np.asarray(small)
+
+
 class CloudVisionDetector(Detector):
     """The centralized baseline's detector: frames go up as JPEG, the cloud runs YOLO.
 
@@ -137,3 +147,63 @@ class CloudVisionDetector(Detector):
         self.last_frame_bytes = len(data)
         self.bytes_sent[view.drone_id] = self.bytes_sent.get(view.drone_id, 0) + len(data)
         return self.yolo.detect_image(decode_jpeg(data))  # in the cloud
+
+
+class FrameUplink(Detector):
+    """The paper's centralized baseline's uplink: frames go up as JPEG, nothing is detected.
+
+    Per :meth:`detect` call, the drone side renders the view's frame (unless the view carries
+    one) with ``renderer`` and encodes it at ``quality``; the cloud side decodes it and keeps it
+    downscaled to ``frame_px`` pixels (:func:`downscale`), the image model's input, as
+    :attr:`last_frame`. :attr:`last_frame_bytes` (B) is the latest frame's JPEG size and
+    :attr:`bytes_sent` maps each drone id to its total bytes (B). The drones store no boxes:
+    :meth:`detect` returns none.
+    """
+
+    name = "frame_uplink"
+
+    def __init__(
+        self, renderer: SceneRenderer, frame_px: int, quality: int = DEFAULT_JPEG_QUALITY
+    ) -> None:
+        _check_quality(quality)
+        if isinstance(frame_px, bool) or not isinstance(frame_px, int) or frame_px < 1:
+            raise ValueError(f"frame_px: must be a positive integer, got {frame_px!r}")
+        self.renderer = renderer
+        self.frame_px = frame_px
+        self.quality = int(quality)
+        self.last_frame = np.zeros((frame_px, frame_px, 3), dtype=np.uint8)
+        self.last_frame_bytes = 0
+        self.bytes_sent: dict[int, int] = {}
+
+    @classmethod
+    def for_world(
+        cls, world: World, frame_px: int, quality: int = DEFAULT_JPEG_QUALITY
+    ) -> FrameUplink:
+        """Frames rendered from ``world`` (its environment, vehicles and camera), sent at
+        ``quality`` and kept at ``frame_px`` pixels."""
+        scenario = world.scenario
+        renderer = SceneRenderer(
+            world.camera, scenario.vehicle, world.environment, scenario.target_ids
+        )
+        return cls(renderer, frame_px, quality)
+
+    def state(self) -> dict[int, int]:
+        """The bytes each drone has sent so far (rendering and coding draw no random numbers)."""
+        return dict(self.bytes_sent)
+
+    def restore(self, state: dict[int, int]) -> None:
+        """Continue counting from ``state``."""
+        self.bytes_sent = dict(state)
+
+    def close(self) -> None:
+        """Free the renderer's OpenGL context."""
+        self.renderer.close()
+
+    def detect(self, view: CameraView) -> tuple[Detection, ...]:
+        """Send drone ``view.drone_id``'s frame of ``view`` up (:attr:`last_frame`); no boxes."""
+        image = view.image if view.image is not None else self.renderer.render_view(view)
+        data = encode_jpeg(image, self.quality)  # on the drone
+        self.last_frame_bytes = len(data)
+        self.bytes_sent[view.drone_id] = self.bytes_sent.get(view.drone_id, 0) + len(data)
+        self.last_frame = downscale(decode_jpeg(data), self.frame_px)  # in the cloud
+        return ()

@@ -14,9 +14,11 @@ from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.fl_offline import OfflineResults
-from dronefl.experiments.table1 import METRICS, run_table1
-from dronefl.experiments.track import TRACK_METHODS, TrackConfig
+from dronefl.experiments.table1 import METRICS, TABLE1_METHODS, run_table1
+from dronefl.experiments.track import TrackConfig
 
+#: Table I's methods with the projection detector (the image baseline flies on frames only).
+TRACK_METHODS = TABLE1_METHODS["projection"]
 SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
 #: Short settings: 20 s of crop field and 2 FL rounds to pretrain, 18 s episodes with an FL
 #: round (of one local epoch) every 8 s, no GIF.

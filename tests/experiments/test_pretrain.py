@@ -1,6 +1,7 @@
 """Pretraining: a cache keyed by content, run outside any FL session, and a failure inside
 Flower that ends the command quickly, in one line, with no Ray process left behind."""
 
+import json
 import os
 import subprocess
 import sys
@@ -10,9 +11,10 @@ from dataclasses import replace
 from pathlib import Path
 
 import pytest
+import torch
 
 from dronefl.config import load_scenario, parse_scenario
-from dronefl.experiments.pretrain import PretrainSpec, held_out_mse
+from dronefl.experiments.pretrain import PretrainSpec, held_out_mse, pretrain, pretrained_state
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
 from dronefl.fl.records import FlSettings, RoundRecord
@@ -173,3 +175,28 @@ def test_held_out_mse_reads_the_last_evaluated_round(tmp_path):
     )
     with pytest.raises(ValueError, match="no evaluated round"):
         held_out_mse(spec, tmp_path)
+
+
+def test_the_image_model_is_pretrained_on_rendered_frames_once(tmp_path):
+    spec = PretrainSpec(SCENARIO, "image", duration=12.0)
+    first = pretrain(spec, tmp_path, progress=False)
+
+    path = spec.model_path(tmp_path)
+    assert path.parent.name.startswith("image-") and path.is_file()
+    assert (spec.data_dir(tmp_path) / "frames_48px_q90.npz").is_file()  # rendered once, kept
+    report = json.loads((path.parent / "pretrain.json").read_text())
+    assert report["model_input"] == "frames" and report["parameters"] > 100_000
+    assert len(report["train_loss"]) == 30
+    per_drone = held_out_mse(spec, tmp_path)
+    assert sorted(per_drone) == [1, 2] and all(v > 0 for v in per_drone.values())
+    # Cached: the same weights, nothing trained again.
+    written = path.stat().st_mtime_ns
+    again = pretrained_state(spec, tmp_path, progress=False)
+    assert path.stat().st_mtime_ns == written
+    assert all(torch.equal(first[k], again[k]) for k in first)
+    # Its own key: a DroneFL model of the same recording lives elsewhere; the image model's
+    # settings and training code are in its key, the preset is not (it trains as it says).
+    dronefl = replace(spec, kind="dronefl").settings(tmp_path).checkpoint_path.parent
+    assert spec.image_dir(tmp_path) != dronefl and dronefl.parent == spec.image_dir(tmp_path).parent
+    assert replace(spec, past_steps=8).image_dir(tmp_path) != spec.image_dir(tmp_path)
+    assert replace(spec, preset="metric-sgd").image_dir(tmp_path) == spec.image_dir(tmp_path)

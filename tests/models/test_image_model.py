@@ -12,8 +12,11 @@ from dronefl.models.image import (
     FrameTransformer,
     FrameWindows,
     ImageModelConfig,
+    ImageTraining,
+    chronological_rows,
     evaluate_image_model,
     frame_windows,
+    recorded_frame_windows,
     train_image_model,
 )
 from dronefl.perception.recorded_frames import render_run
@@ -37,6 +40,20 @@ def test_windows_hold_past_frames_and_the_next_position_relative_to_the_drone():
     np.testing.assert_allclose(data.label[1, 0], [10.0 - 3.0, 10.0])  # x(t+1) - drone x(t)
     assert data.mask.tolist() == [[False, False], [True, False], [False, False]]
     assert data.drone.tolist() == [7, 7, 7]
+
+
+def test_rows_split_in_time_and_keep_every_strideth_training_window():
+    k, n = 12, 1
+    frames = np.zeros((k, 8, 8, 3), np.uint8)
+    odometry = np.zeros((k, 12))
+    visible = np.ones((k, n), dtype=bool)
+    visible[4] = False  # nothing to learn from in the window ending at t = 4
+    data = frame_windows(frames, odometry, visible, np.zeros((k, n, 2)), 1, past_steps=2)
+    train, held_out = chronological_rows(data, stride=2, train_fraction=0.5)
+    ends = data.index[:, -1]
+    # Steps 0-5 train (label at t + 1 <= 5), 6-11 are held out; ends run 1..10.
+    assert ends[train].tolist() == [2]  # 4 has no visible target; 1 and 3 off the stride
+    assert ends[held_out].tolist() == [5, 6, 7, 8, 9, 10]
 
 
 def test_output_scales_with_the_altitude():
@@ -79,19 +96,14 @@ def test_a_run_is_rendered_through_the_jpeg_uplink_once(rendered_run):
 def test_the_image_model_learns_from_rendered_frames(rendered_run):
     folder, rendered = rendered_run
     logs, truth = load_run(folder)
-    parts = []
-    for i, drone_id in enumerate(rendered.drone_ids):
-        log = logs[drone_id]
-        visible = log.detected & log.assigned[None, :]
-        windows = frame_windows(rendered.frames[i], log.odometry.astype(np.float64), visible,
-                                truth.target_position, drone_id, past_steps=4)  # fmt: skip
-        parts.append(windows.subset(np.flatnonzero(windows.mask.any(axis=1))))
+    sets = recorded_frame_windows(logs, truth, rendered.frames, rendered.drone_ids, past_steps=4)
+    parts = [w.subset(np.flatnonzero(w.mask.any(axis=1))) for w in sets.values()]
     data = FrameWindows.concat(parts)
     assert len(data) > 100
     torch.manual_seed(0)
     model = FrameTransformer(ImageModelConfig(n_targets=2, past_steps=4, frame_px=32))
     before = evaluate_image_model(model, data)
-    stats = train_image_model(model, data, epochs=12, lr=2e-3, batch_size=32, seed=0)
+    stats = train_image_model(model, data, ImageTraining(epochs=12, lr=2e-3, batch_size=32))
     after = evaluate_image_model(model, data)
     assert stats.loss[-1] < 0.5 * stats.loss[0], stats.loss
     assert set(after) == {1, 2}

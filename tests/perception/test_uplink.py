@@ -10,7 +10,9 @@ from dronefl.perception.render import SceneRenderer
 from dronefl.perception.uplink import (
     DEFAULT_JPEG_QUALITY,
     CloudVisionDetector,
+    FrameUplink,
     decode_jpeg,
+    downscale,
     encode_jpeg,
 )
 from dronefl.sim.world import World
@@ -126,3 +128,35 @@ def test_a_frame_carried_by_the_view_is_sent_as_is(frame: np.ndarray) -> None:
     assert on_raw and set(on_jpeg) == set(on_raw)
     for target_id, box in on_raw.items():
         assert iou_xywh(on_jpeg[target_id], box) >= 0.8
+
+
+def test_downscale_averages_the_pixels_each_output_pixel_covers() -> None:
+    image = np.zeros((4, 4, 3), dtype=np.uint8)
+    image[:2, :2] = 200  # the top-left quarter
+    image[2:, 2:, 0] = 100  # red in the bottom-right quarter
+    image[0, 3] = 40  # one pixel of the top-right quarter
+
+    small = downscale(image, 2)
+
+    assert small.shape == (2, 2, 3) and small.dtype == np.uint8
+    np.testing.assert_array_equal(small[0, 0], [200, 200, 200])
+    np.testing.assert_array_equal(small[1, 1], [100, 0, 0])
+    np.testing.assert_array_equal(small[0, 1], [10, 10, 10])  # 40 / 4
+    np.testing.assert_array_equal(small[1, 0], [0, 0, 0])
+
+
+def test_the_frame_uplink_sends_the_jpeg_and_keeps_it_small_in_the_cloud(frame) -> None:
+    world = World(SCENARIO, environment="crop_field", seed=0)
+    uplink = FrameUplink.for_world(world, frame_px=48)
+    view = CameraView(7, 0.0, np.array([0.0, 0.0, 30.0]), 0.0, (), image=frame)
+
+    detections = uplink.detect(view)
+    uplink.close()
+
+    data = encode_jpeg(frame, DEFAULT_JPEG_QUALITY)
+    assert detections == ()  # the drones detect nothing: the frame is the message
+    assert uplink.last_frame_bytes == len(data)
+    assert uplink.bytes_sent == {7: len(data)}
+    np.testing.assert_array_equal(uplink.last_frame, downscale(decode_jpeg(data), 48))
+    with pytest.raises(ValueError, match="frame_px"):
+        FrameUplink(uplink.renderer, frame_px=0)

@@ -28,6 +28,8 @@ def _figures() -> Benchmarks:
         centralized_inference=latency("large", [0.4e-3] * 3, "ms", 1),
         training_epoch=latency("epoch", [0.25] * 3, "s", 1),
         centralized_training_epoch=latency("large epoch", [1.0] * 3, "s", 1),
+        image_inference=latency("image", [2e-3] * 3, "ms", 1),
+        image_training_epoch=latency("image epoch", [9.0] * 3, "s", 1),
         detector=latency("yolo", [60e-3] * 3, "ms", 1),
         planner=latency("plan", [2e-3] * 3, "ms", 1),
     )
@@ -82,9 +84,10 @@ def test_table2_puts_ours_beside_the_papers_numbers():
     latency_row = rows["Infer. latency per sample (s)"]
     assert latency_row[1:3] == ("0.63", "0.13 (Y.) + 0.01 (T.)")
     assert latency_row[4] == "0.0602 = 0.06 (Y.) + 0.0002 (T.)"
-    assert rows["Train. latency per epoch (s)"][3:] == ("1", "0.25")
+    assert latency_row[5] == "0.002"  # the image model: no detector
+    assert rows["Train. latency per epoch (s)"][3:] == ("1", "0.25", "9")
     assert "Infer. energy per sample (J, estimate)" in rows
-    assert rows["Communication cost (KB/s per drone)"][3:] == ("—", "—")  # not measured
+    assert rows["Communication cost (KB/s per drone)"][3:] == ("—", "—", "—")  # not measured
 
 
 def test_table2_gives_dronefl_comm_at_one_round_per_period_or_says_there_was_none():
