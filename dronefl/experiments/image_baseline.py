@@ -13,9 +13,11 @@ and trains, on the first ``train_fraction`` of the crop-field steps of every dro
 
 Both are scored on the same cells (drone, target, step t -> position at t + 1): every box
 window of the crop field's held-out last steps and of the whole orchard run, as the mean
-squared distance (m^2) per drone. ``results.json`` holds both, the image model's parameter
-count, training seconds per epoch, inference ms per sample and the uplink's JPEG bytes;
-``image_baseline.png`` compares them; ``image_model.npz`` holds the image model's weights.
+squared distance (m^2) per drone, and over all drones by how far the target is from the
+drone's nadir (the image centre; :data:`OFFSET_EDGES_M`). ``results.json`` holds both, the
+image model's parameter count, training seconds per epoch, inference ms per sample and the
+uplink's JPEG bytes; ``image_baseline.png`` compares them; ``image_model.npz`` holds the image
+model's weights.
 """
 
 from __future__ import annotations
@@ -58,6 +60,9 @@ from dronefl.report.fl_plots import plot_image_baseline
 
 #: The two recordings: where the models learn and where they are deployed.
 ENVIRONMENTS = ("crop_field", "orchard")
+#: Bins (m) of the target's horizontal distance from the drone at t + 1, for the errors by
+#: offset (the last bin is open).
+OFFSET_EDGES_M = (0.0, 4.0, 8.0, 12.0, 20.0)
 
 
 @dataclass(frozen=True)
@@ -142,14 +147,14 @@ def _image_training_set(config: ImageBaselineConfig, recording: Recording) -> Fr
     return FrameWindows.concat(parts)
 
 
-def image_cell_mse(
+def image_cell_errors(
     model: FrameTransformer,
     frame_sets: dict[int, FrameWindows],
     cells: list[WindowSet],
     target_ids: tuple[int, ...],
-) -> dict[int, float]:
-    """Mean squared distance (m^2), per drone, of ``model``'s predictions on the cells
-    (drone, target, t) of the box windows ``cells``."""
+) -> dict[int, np.ndarray]:
+    """Squared distance (m^2) of ``model``'s prediction of each cell (drone, target, t) of the
+    box windows ``cells``, per drone."""
     slot = {t: j for j, t in enumerate(target_ids)}
     out = {}
     for windows in cells:
@@ -162,22 +167,45 @@ def image_cell_mse(
         slots = np.array([slot[int(t)] for t in windows.target_ids])
         relative = predict_windows(model, data, rows)[np.arange(len(rows)), slots]
         truth = windows.labels[:, 0]  # relative to the same odometry position
-        out[drone] = float(((relative - truth) ** 2).sum(-1).mean())
+        out[drone] = ((relative - truth) ** 2).sum(-1)
     return out
 
 
 @torch.no_grad()
-def box_cell_mse(model: torch.nn.Module, cells: list[WindowSet]) -> dict[int, float]:
-    """Mean squared distance (m^2), per drone, of the box model on its windows ``cells``."""
+def box_cell_errors(model: torch.nn.Module, cells: list[WindowSet]) -> dict[int, np.ndarray]:
+    """Squared distance (m^2) of the box model's prediction of each of its windows ``cells``,
+    per drone."""
     model.eval()
     out = {}
     for windows in cells:
         if len(windows) == 0:
             continue
         predicted = model(torch.from_numpy(windows.features), torch.from_numpy(windows.altitude))
-        error = (predicted.numpy()[:, 0] - windows.labels[:, 0]) ** 2
-        out[int(windows.drone_ids[0])] = float(error.sum(-1).mean())
+        error = predicted.numpy()[:, 0] - windows.labels[:, 0]
+        out[int(windows.drone_ids[0])] = (error**2).sum(-1)
     return out
+
+
+def cell_offsets(cells: list[WindowSet]) -> dict[int, np.ndarray]:
+    """Each cell's target distance (m) at t + 1 from the drone's position at t, per drone."""
+    return {int(w.drone_ids[0]): np.linalg.norm(w.labels[:, 0], axis=-1) for w in cells if len(w)}
+
+
+def mse_by_offset(
+    errors: dict[int, np.ndarray], offsets: dict[int, np.ndarray]
+) -> dict[str, list[float]]:
+    """Mean of ``errors`` (m^2) over all drones' cells in each bin of :data:`OFFSET_EDGES_M`
+    (NaN: an empty bin) and the number of cells per bin."""
+    error = np.concatenate([errors[d] for d in sorted(errors)])
+    offset = np.concatenate([offsets[d] for d in sorted(errors)])
+    bins = np.digitize(offset, OFFSET_EDGES_M[1:])
+    mse = [float(error[bins == b].mean()) if (bins == b).any() else float("nan")
+           for b in range(len(OFFSET_EDGES_M))]  # fmt: skip
+    return {"mse": mse, "cells": [int((bins == b).sum()) for b in range(len(OFFSET_EDGES_M))]}
+
+
+def _per_drone_mean(errors: dict[int, np.ndarray]) -> dict[int, float]:
+    return {d: float(e.mean()) for d, e in errors.items()}
 
 
 @torch.no_grad()
@@ -213,17 +241,19 @@ def run_image_baseline(config: ImageBaselineConfig) -> dict:
     )
     box_seconds = (time.perf_counter() - started) / config.epochs
     inference_ms = _inference_ms(image, training.subset(np.arange(min(64, len(training)))))
-    scores = {
+    places = {"crop_field_held_out": crop, "orchard": orchard}
+    errors = {
         "image": {
-            "crop_field_held_out": image_cell_mse(
-                image, crop.frame_sets, crop.boxes_test, target_ids
-            ),
-            "orchard": image_cell_mse(image, orchard.frame_sets, orchard.boxes_test, target_ids),
+            place: image_cell_errors(image, rec.frame_sets, rec.boxes_test, target_ids)
+            for place, rec in places.items()
         },
-        "boxes": {
-            "crop_field_held_out": box_cell_mse(large, crop.boxes_test),
-            "orchard": box_cell_mse(large, orchard.boxes_test),
-        },
+        "boxes": {place: box_cell_errors(large, rec.boxes_test) for place, rec in places.items()},
+    }
+    scores = {m: {p: _per_drone_mean(e) for p, e in by.items()} for m, by in errors.items()}
+    offsets = {place: cell_offsets(rec.boxes_test) for place, rec in places.items()}
+    by_offset = {
+        "edges_m": list(OFFSET_EDGES_M),
+        **{m: {p: mse_by_offset(e, offsets[p]) for p, e in by.items()} for m, by in errors.items()},
     }
     results = {
         "scenario": config.scenario.name,
@@ -247,6 +277,7 @@ def run_image_baseline(config: ImageBaselineConfig) -> dict:
         "jpeg_kb_per_frame": {"crop_field": crop.jpeg_kb_per_frame,
                               "orchard": orchard.jpeg_kb_per_frame},
         "mse": scores,
+        "mse_by_offset": by_offset,
     }  # fmt: skip
     out = Path(config.out)
     atomic_savez(out / "image_model.npz", **{k: v.numpy() for k, v in image.state_dict().items()})

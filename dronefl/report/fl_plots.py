@@ -70,8 +70,9 @@ def plot_altitude(curves: dict[str, Curve], path: Path) -> Path:
 def plot_image_baseline(results: dict, path: Path) -> Path:
     """Left: each drone's prediction MSE (m^2, log scale) of the image model and of the box
     model, on the crop field's held-out steps and on the orchard run (``results.json`` of
-    ``dronefl image-baseline``); right: the image model's training loss per epoch."""
-    fig, (bars, loss) = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    ``dronefl image-baseline``); middle: the same MSE over all drones by the target's distance
+    from the drone (the image centre); right: the image model's training loss per epoch."""
+    fig, (bars, offset, loss) = plt.subplots(1, 3, figsize=(13.0, 3.6))
     places = ("crop_field_held_out", "orchard")
     drones = sorted({d for scores in results["mse"].values() for d in scores[places[0]]}, key=int)
     x = np.arange(len(drones) * len(places))
@@ -86,6 +87,21 @@ def plot_image_baseline(results: dict, path: Path) -> Path:
     bars.set_title(f"{results['scenario']}: trained in the crop field")
     bars.legend(fontsize=7)
     bars.grid(True, axis="y", which="both", alpha=0.3)
+    by_offset = results["mse_by_offset"]
+    edges = by_offset["edges_m"]
+    names = [f"{a:g}-{b:g}" for a, b in zip(edges[:-1], edges[1:], strict=True)]
+    names.append(f">{edges[-1]:g}")
+    for model, colour in (("image", "tab:red"), ("boxes", "black")):
+        for place, style in (("crop_field_held_out", "--"), ("orchard", "-")):
+            values = by_offset[model][place]["mse"]
+            label = f"{'image' if model == 'image' else 'box'} model, {place.split('_')[0]}"
+            offset.plot(names, values, style, marker="o", color=colour, label=label)
+    offset.set_yscale("log")
+    offset.set_xlabel("target's distance from the drone (m)")
+    offset.set_ylabel("prediction MSE (m$^2$), all drones")
+    offset.set_title("by distance from the image centre")
+    offset.legend(fontsize=7)
+    offset.grid(True, which="both", alpha=0.3)
     history = results["image_model"]["train_loss"]
     loss.plot(np.arange(1, len(history) + 1), history, color="tab:red")
     loss.set_yscale("log")

@@ -23,6 +23,12 @@ def test_image_baseline_scores_both_models_on_both_environments(tmp_path):
             scores = results["mse"][model][where]
             assert set(scores) == {"1", "2"}, scores
             assert all(np.isfinite(v) and v > 0 for v in scores.values())
+    # By the target's distance from the drone: both models on the same cells, every bin.
+    by_offset = results["mse_by_offset"]
+    for place in ("crop_field_held_out", "orchard"):
+        image_bins, box_bins = (by_offset[m][place] for m in ("image", "boxes"))
+        assert len(image_bins["mse"]) == len(by_offset["edges_m"])
+        assert image_bins["cells"] == box_bins["cells"] and sum(image_bins["cells"]) > 0
     assert results["jpeg_kb_per_frame"]["orchard"] > 10  # 640 x 640 frames at q90
     with np.load(tmp_path / "image_model.npz") as weights:
         assert sum(weights[k].size for k in weights.files) == image["parameters"]
