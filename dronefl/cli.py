@@ -727,7 +727,7 @@ def table1(
     interrupted run resumes.
     Example: dronefl table1 --seeds "0 1 2" --scenarios "case1 case2 case3" --out runs/table1
     """
-    from dronefl.experiments.table1 import TABLE1_METHODS, run_table1
+    from dronefl.experiments.table1 import TABLE1_METHODS, episode_configs, run_table1
     from dronefl.experiments.track import TRACK_METHODS
 
     check_choice(detector, DETECTORS, "--detector")
@@ -743,7 +743,12 @@ def table1(
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
     )  # fmt: skip
-    episodes = run_table1(base, specs, chosen, _int_list(seeds, "--seeds"))
+    seed_list = _int_list(seeds, "--seeds")
+    try:
+        episode_configs(base, specs, chosen, seed_list)
+    except ValueError as exc:  # a method that cannot fly these settings
+        raise fail(str(exc)) from None
+    episodes = run_table1(base, specs, chosen, seed_list)
     typer.echo((out / "table1.md").read_text())
     typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(episodes)} episodes)")
 

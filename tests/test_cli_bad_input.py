@@ -194,6 +194,8 @@ BAD_OPTIONS = [
     "track --pretrained FILE",
     "track --config nope",
     "track --lr 0",
+    "track --method centralized-image",
+    "table1 --methods centralized-image",
     "table1 --seeds a",
     "table1 --scenarios nope",
     "table1 --duration -1",

@@ -60,29 +60,46 @@ class Table1Row:
     wall_seconds: float
 
 
+def episode_configs(
+    base: TrackConfig,
+    scenarios: tuple[Scenario, ...],
+    methods: tuple[str, ...] | None = None,
+    seeds: tuple[int, ...] = (0, 1, 2),
+) -> list[TrackConfig]:
+    """Every episode of the table: ``base`` for each scenario x method (default:
+    :data:`TABLE1_METHODS` of the detector) x seed, each in its folder
+    ``<out>/<scenario>/<method>/seed<K>/``; ``ValueError`` naming the option for a method that
+    cannot fly these settings."""
+    out = Path(base.out)
+    methods = TABLE1_METHODS[base.detector] if methods is None else methods
+    return [
+        dataclasses.replace(
+            base,
+            scenario=scenario,
+            method=method,
+            seed=seed,
+            out=out / scenario.name / method / f"seed{seed}",
+        )  # fmt: skip
+        for scenario in scenarios
+        for method in methods
+        for seed in seeds
+    ]
+
+
 def run_table1(
     base: TrackConfig,
     scenarios: tuple[Scenario, ...],
     methods: tuple[str, ...] | None = None,
     seeds: tuple[int, ...] = (0, 1, 2),
 ) -> list[EpisodeMetrics]:
-    """Run (or reuse) every episode of ``methods`` (default: :data:`TABLE1_METHODS` of the
-    detector); write ``table1.md``, ``table1.csv`` and ``table1.png`` into ``base.out`` and
-    return every episode's metrics."""
+    """Run (or reuse) every episode of :func:`episode_configs` (all checked before any work);
+    write ``table1.md``, ``table1.csv`` and ``table1.png`` into ``base.out`` and return every
+    episode's metrics."""
     out = Path(base.out)
-    methods = TABLE1_METHODS[base.detector] if methods is None else methods
     episodes = []
-    for scenario in scenarios:
-        for method in methods:
-            for seed in seeds:
-                folder = out / scenario.name / method / f"seed{seed}"
-                config = dataclasses.replace(
-                    base, scenario=scenario, method=method, seed=seed, out=folder
-                )
-                done = _finished(config)
-                if done is None:
-                    done = run_episode(config)
-                episodes.append(done)
+    for config in episode_configs(base, scenarios, methods, seeds):
+        done = _finished(config)
+        episodes.append(run_episode(config) if done is None else done)
     rows = summarize(episodes)
     from dronefl.report.tables import table1_csv, table1_markdown
     from dronefl.report.tracking import plot_table1_bars
