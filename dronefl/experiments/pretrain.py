@@ -39,6 +39,7 @@ from dronefl.experiments.fl_offline import run_centralized
 from dronefl.experiments.pretrain_image import (
     IMAGE_PRETRAINING,
     IMAGE_TRAIN_FRACTION,
+    load_image_state,
     pretrain_image,
 )
 from dronefl.experiments.simulate import simulate
@@ -178,8 +179,9 @@ def pretrained_state(
     spec: PretrainSpec, folder: Path, progress: bool = True
 ) -> dict[str, torch.Tensor]:
     """The cached pretrained weights of ``spec``, pretraining them if missing."""
-    if spec.kind == "image":
-        return pretrain(spec, folder, progress)  # cached weights are returned as they are
+    if spec.kind == "image":  # cached weights need no recording
+        path = spec.model_path(folder)
+        return load_image_state(path) if path.is_file() else pretrain(spec, folder, progress)
     settings = spec.settings(folder)
     if settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)

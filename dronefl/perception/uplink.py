@@ -92,43 +92,30 @@ def downscale(image: np.ndarray, frame_px: int) -> np.ndarray:
     return np.asarray(small)
 
 
-class CloudVisionDetector(Detector):
-    """The centralized baseline's detector: frames go up as JPEG, the cloud runs YOLO.
+class JpegUplink(Detector):
+    """What every frame uplink shares: per :meth:`send`, the drone side renders the view's
+    frame (unless the view carries one) with ``renderer`` and encodes it at ``quality``; the
+    bytes are recorded: :attr:`last_frame_bytes` (B) is the size of the latest frame and
+    :attr:`bytes_sent` maps each drone id to its total bytes (B) sent so far. Rendering and
+    coding draw no random numbers, so the byte counts are the whole state."""
 
-    Per :meth:`detect` call, the drone side renders the view's frame (unless the view carries
-    one) with ``renderer`` and encodes it at ``quality``; the cloud side decodes those bytes and
-    runs ``yolo`` (:meth:`YoloDetector.detect_image`) on the decoded frame. The uplink is
-    recorded: :attr:`last_frame_bytes` (B) is the size of the latest frame and
-    :attr:`bytes_sent` maps each drone id to its total bytes (B) sent so far.
-    """
-
-    name = "cloud_vision"
-
-    def __init__(
-        self, renderer: SceneRenderer, yolo: YoloDetector, quality: int = DEFAULT_JPEG_QUALITY
-    ) -> None:
+    def __init__(self, renderer: SceneRenderer, quality: int = DEFAULT_JPEG_QUALITY) -> None:
         _check_quality(quality)
         self.renderer = renderer
-        self.yolo = yolo
         self.quality = int(quality)
         self.last_frame_bytes = 0
         self.bytes_sent: dict[int, int] = {}
 
-    @classmethod
-    def for_world(cls, world: World, quality: int = DEFAULT_JPEG_QUALITY) -> CloudVisionDetector:
-        """Frames rendered from ``world`` (its environment, vehicles and camera) sent at
-        ``quality``; the cloud runs the shipped YOLO detector, reporting only the scenario's
-        target ids."""
-        _check_quality(quality)
-        scenario = world.scenario
-        renderer = SceneRenderer(
-            world.camera, scenario.vehicle, world.environment, scenario.target_ids
-        )
-        return cls(renderer, YoloDetector(target_ids=scenario.target_ids), quality)
+    def send(self, view: CameraView) -> bytes:
+        """Drone ``view.drone_id``'s JPEG-coded frame of ``view``, counted."""
+        image = view.image if view.image is not None else self.renderer.render_view(view)
+        data = encode_jpeg(image, self.quality)
+        self.last_frame_bytes = len(data)
+        self.bytes_sent[view.drone_id] = self.bytes_sent.get(view.drone_id, 0) + len(data)
+        return data
 
     def state(self) -> dict[int, int]:
-        """The bytes each drone has sent so far (:meth:`Detector.state`; rendering, coding
-        and YOLO draw no random numbers)."""
+        """The bytes each drone has sent so far (:meth:`Detector.state`)."""
         return dict(self.bytes_sent)
 
     def restore(self, state: dict[int, int]) -> None:
@@ -138,72 +125,71 @@ class CloudVisionDetector(Detector):
     def close(self) -> None:
         """Free the renderer's OpenGL context."""
         self.renderer.close()
+
+
+def world_renderer(world: World) -> SceneRenderer:
+    """A renderer of ``world``'s environment, vehicles and camera."""
+    scenario = world.scenario
+    return SceneRenderer(world.camera, scenario.vehicle, world.environment, scenario.target_ids)
+
+
+class CloudVisionDetector(JpegUplink):
+    """The centralized baseline's detector: frames go up as JPEG (:class:`JpegUplink`), the
+    cloud decodes them and runs ``yolo`` (:meth:`YoloDetector.detect_image`) on the decoded
+    frame."""
+
+    name = "cloud_vision"
+
+    def __init__(
+        self, renderer: SceneRenderer, yolo: YoloDetector, quality: int = DEFAULT_JPEG_QUALITY
+    ) -> None:
+        super().__init__(renderer, quality)
+        self.yolo = yolo
+
+    @classmethod
+    def for_world(cls, world: World, quality: int = DEFAULT_JPEG_QUALITY) -> CloudVisionDetector:
+        """Frames rendered from ``world`` sent at ``quality``; the cloud runs the shipped YOLO
+        detector, reporting only the scenario's target ids."""
+        _check_quality(quality)
+        target_ids = world.scenario.target_ids
+        return cls(world_renderer(world), YoloDetector(target_ids=target_ids), quality)
+
+    def close(self) -> None:
+        """Free the renderer's OpenGL context and the detector."""
+        super().close()
         self.yolo.close()
 
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """The cloud's detections in drone ``view.drone_id``'s JPEG-coded frame of ``view``."""
-        image = view.image if view.image is not None else self.renderer.render_view(view)
-        data = encode_jpeg(image, self.quality)  # on the drone
-        self.last_frame_bytes = len(data)
-        self.bytes_sent[view.drone_id] = self.bytes_sent.get(view.drone_id, 0) + len(data)
-        return self.yolo.detect_image(decode_jpeg(data))  # in the cloud
+        return self.yolo.detect_image(decode_jpeg(self.send(view)))  # in the cloud
 
 
-class FrameUplink(Detector):
-    """The paper's centralized baseline's uplink: frames go up as JPEG, nothing is detected.
-
-    Per :meth:`detect` call, the drone side renders the view's frame (unless the view carries
-    one) with ``renderer`` and encodes it at ``quality``; the cloud side decodes it and keeps it
-    downscaled to ``frame_px`` pixels (:func:`downscale`), the image model's input, as
-    :attr:`last_frame`. :attr:`last_frame_bytes` (B) is the latest frame's JPEG size and
-    :attr:`bytes_sent` maps each drone id to its total bytes (B). The drones store no boxes:
-    :meth:`detect` returns none.
-    """
+class FrameUplink(JpegUplink):
+    """The paper's centralized baseline's uplink: frames go up as JPEG (:class:`JpegUplink`),
+    nothing is detected; the cloud decodes each frame and keeps it downscaled to ``frame_px``
+    pixels (:func:`downscale`), the image model's input, as :attr:`last_frame`. The drones
+    store no boxes: :meth:`detect` returns none."""
 
     name = "frame_uplink"
 
     def __init__(
         self, renderer: SceneRenderer, frame_px: int, quality: int = DEFAULT_JPEG_QUALITY
     ) -> None:
-        _check_quality(quality)
         if isinstance(frame_px, bool) or not isinstance(frame_px, int) or frame_px < 1:
             raise ValueError(f"frame_px: must be a positive integer, got {frame_px!r}")
-        self.renderer = renderer
+        super().__init__(renderer, quality)
         self.frame_px = frame_px
-        self.quality = int(quality)
         self.last_frame = np.zeros((frame_px, frame_px, 3), dtype=np.uint8)
-        self.last_frame_bytes = 0
-        self.bytes_sent: dict[int, int] = {}
 
     @classmethod
     def for_world(
         cls, world: World, frame_px: int, quality: int = DEFAULT_JPEG_QUALITY
     ) -> FrameUplink:
-        """Frames rendered from ``world`` (its environment, vehicles and camera), sent at
-        ``quality`` and kept at ``frame_px`` pixels."""
-        scenario = world.scenario
-        renderer = SceneRenderer(
-            world.camera, scenario.vehicle, world.environment, scenario.target_ids
-        )
-        return cls(renderer, frame_px, quality)
-
-    def state(self) -> dict[int, int]:
-        """The bytes each drone has sent so far (rendering and coding draw no random numbers)."""
-        return dict(self.bytes_sent)
-
-    def restore(self, state: dict[int, int]) -> None:
-        """Continue counting from ``state``."""
-        self.bytes_sent = dict(state)
-
-    def close(self) -> None:
-        """Free the renderer's OpenGL context."""
-        self.renderer.close()
+        """Frames rendered from ``world`` sent at ``quality`` and kept at ``frame_px`` pixels."""
+        _check_quality(quality)
+        return cls(world_renderer(world), frame_px, quality)
 
     def detect(self, view: CameraView) -> tuple[Detection, ...]:
         """Send drone ``view.drone_id``'s frame of ``view`` up (:attr:`last_frame`); no boxes."""
-        image = view.image if view.image is not None else self.renderer.render_view(view)
-        data = encode_jpeg(image, self.quality)  # on the drone
-        self.last_frame_bytes = len(data)
-        self.bytes_sent[view.drone_id] = self.bytes_sent.get(view.drone_id, 0) + len(data)
-        self.last_frame = downscale(decode_jpeg(data), self.frame_px)  # in the cloud
+        self.last_frame = downscale(decode_jpeg(self.send(view)), self.frame_px)  # in the cloud
         return ()
