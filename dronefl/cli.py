@@ -836,6 +836,13 @@ def replay(
     fading: Annotated[
         bool, typer.Option(help="Inflate the prior of a track the drones find lagging (robust).")
     ] = True,
+    noise_split: Annotated[
+        str,
+        typer.Option(
+            help="adaptive|reported: share two drones' R by the noise they report (robust; "
+            "rebuilt from the episode's checkpoint.pkl)."
+        ),
+    ] = "adaptive",
     labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
     max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
@@ -869,6 +876,7 @@ def replay(
             huber_threshold=huber_threshold,
             error_autocorrelation=error_autocorrelation,
             fading=fading,
+            noise_split=noise_split,
         )
         result = run(recorded, config, labels=labels, max_std=max_std)
     except (EpisodeError, ValueError) as exc:

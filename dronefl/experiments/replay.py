@@ -7,11 +7,16 @@
 pseudo-labels of the whole episode, and compares, per target, the fused (filtered) track and
 the labels with each drone's own predictions, all against the truth. The drones flew under the
 recorded episode's fusion, so a replay changes the estimates, not the flight.
+
+With ``noise_split = "reported"`` the drones' own noise reports are rebuilt from their onboard
+records in the episode's ``checkpoint.pkl`` (:func:`drone_reports`): the boxes and odometry
+each drone stored, the same data from which it would have computed them in flight.
 """
 
 from __future__ import annotations
 
 import json
+import pickle
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -19,8 +24,10 @@ import numpy as np
 
 from dronefl.config import Scenario, load_scenario
 from dronefl.io import atomic_write_json, atomic_write_text
+from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
+from dronefl.tracking.reports import box_ground_positions, forecast_residual_reports
 
 
 class EpisodeError(ValueError):
@@ -197,6 +204,38 @@ def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
         raise ValueError(f"fusion settings: {exc}") from None
 
 
+def drone_reports(episode: Episode) -> np.ndarray:
+    """The noise each drone would have sent with each prediction
+    (:mod:`dronefl.tracking.reports`), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
+    and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
+    plane at half the vehicle's height."""
+    from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
+
+    path = episode.path / CHECKPOINT_NAME
+    if not path.is_file():
+        raise EpisodeError(f"{path}: not found (the drones' records give their noise reports)")
+    try:
+        with path.open("rb") as handle:
+            checkpoint = pickle.load(handle)
+    except Exception as exc:  # unpickling damaged bytes can raise almost any exception type
+        raise EpisodeError(f"{path}: unreadable checkpoint ({type(exc).__name__})") from None
+    if not isinstance(checkpoint, LoopCheckpoint):
+        raise EpisodeError(f"{path}: not an episode checkpoint")
+    records = checkpoint.records
+    scenario = episode.scenario
+    camera = PinholeCamera.from_spec(scenario.camera)
+    detected = []
+    for record in records:
+        n = record.steps
+        boxes = np.where(record.detected[:n, :, None], record.boxes[:n], np.nan)
+        detected.append(
+            box_ground_positions(camera, boxes, record.odometry[:n], scenario.vehicle.height / 2)
+        )
+    if any(len(d) < len(episode.prediction) for d in detected):
+        raise EpisodeError(f"{path}: its records are shorter than episode.npz")
+    return forecast_residual_reports(episode.prediction, detected)
+
+
 def replay(
     episode: Episode,
     config: FusionConfig,
@@ -205,6 +244,7 @@ def replay(
 ) -> ReplayResult:
     """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``."""
     scenario = episode.scenario
+    reports = drone_reports(episode) if config.noise_split == "reported" else None
     fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
     n_steps = episode.prediction.shape[0]
     fused = np.full_like(episode.track_position, np.nan)
@@ -212,7 +252,12 @@ def replay(
     drone_ids, target_ids = scenario.drone_ids, scenario.target_ids
     for k in range(n_steps):
         measurements = [
-            PositionMeasurement(drone_ids[i], target_ids[j], episode.prediction[k, i, j])
+            PositionMeasurement(
+                drone_ids[i],
+                target_ids[j],
+                episode.prediction[k, i, j],
+                None if reports is None or np.isnan(reports[k, i, j]).any() else reports[k, i, j],
+            )
             for i, j in zip(*np.nonzero(seen[k]), strict=True)
         ]
         for target_id, track in fuser.update(float(episode.t[k + 1]), measurements).items():

@@ -67,7 +67,11 @@ class FusionConfig:
     (leave-one-out residuals), ``grubbs`` (the prior as the third corner) or ``innovation`` (the
     paper's form, always used for a lone drone); ``error_autocorrelation`` ``phi``: lag-1
     autocorrelation of the prediction errors, ``R`` inflated by ``(1 + phi) / (1 - phi)`` in
-    the update (an AR(1) error's effective-sample-size factor).
+    the update (an AR(1) error's effective-sample-size factor); ``noise_split``: how the
+    adapted ``R`` of two or more drones on one target is shared between them, ``adaptive``
+    (as it adapts) or ``reported`` (their total kept, shared in proportion to the noise the
+    drones report with their predictions, :mod:`dronefl.tracking.reports`; targets whose
+    drones did not all report keep ``adaptive``).
     """
 
     method: str = "robust"
@@ -87,6 +91,7 @@ class FusionConfig:
     consensus_gate: float | None = CHI2_2DOF_999
     fading: bool = True
     noise_estimate: str = "consensus"
+    noise_split: Literal["adaptive", "reported"] = "adaptive"
 
     def __post_init__(self) -> None:
         if self.method not in FUSION_METHODS:
@@ -118,6 +123,10 @@ class FusionConfig:
                 f"noise_estimate: {self.noise_estimate!r} is not one of consensus, innovation, "
                 "grubbs"
             )
+        if self.noise_split not in ("adaptive", "reported"):
+            raise ValueError(f"noise_split: {self.noise_split!r} is not one of adaptive, reported")
+        if self.noise_split == "reported" and self.method != "robust":
+            raise ValueError("noise_split: 'reported' needs the robust fusion method")
         for name in ("gate", "consensus_gate"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -137,11 +146,14 @@ class FusionConfig:
 @dataclass(frozen=True)
 class PositionMeasurement:
     """Drone ``drone_id``'s predicted ground ``position`` ``(2,)`` (m, world frame) of target
-    ``target_id``; the time it refers to is the ``t`` of the :meth:`Fuser.update` call."""
+    ``target_id``; the time it refers to is the ``t`` of the :meth:`Fuser.update` call.
+    ``reported_noise`` ``(2, 2)`` m²: the drone's own estimate of its error on this target
+    (:mod:`dronefl.tracking.reports`), ``None`` when it sends none."""
 
     drone_id: int
     target_id: int
     position: np.ndarray
+    reported_noise: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -400,11 +412,12 @@ class Fuser:
             )
         index = np.array(pairs, dtype=int).reshape(-1, 2)  # (drone, target) per row, (K, 2)
         positions = _positions(measurements)
+        reported = _reported(measurements)
         finite = np.isfinite(positions).all(axis=1)
         if not finite.all():
             self.dropped += len(finite) - int(finite.sum())
-            index, positions = index[finite], positions[finite]
-        return MeasurementBatch.of(index[:, 1], index[:, 0], positions)
+            index, positions, reported = index[finite], positions[finite], reported[finite]
+        return MeasurementBatch.of(index[:, 1], index[:, 0], positions, reported)
 
     def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
         """Start (or restart) target ``j``'s track at the mean of ``positions``; its
@@ -500,6 +513,18 @@ def _positions(measurements: Sequence[PositionMeasurement]) -> np.ndarray:
         shape = next(s for m in measurements if (s := np.shape(m.position)) != (2,))
         raise ValueError(f"measurement position must have shape (2,), got {shape}")
     return positions
+
+
+def _reported(measurements: Sequence[PositionMeasurement]) -> np.ndarray:
+    """The measurements' reported noises as ``(xx, xy, yy)`` rows ``(K, 3)`` m² (NaN: none)."""
+    out = np.full((len(measurements), 3), np.nan)
+    for k, m in enumerate(measurements):
+        if m.reported_noise is not None:
+            noise = np.asarray(m.reported_noise, dtype=float)
+            if noise.shape != (2, 2):
+                raise ValueError(f"measurement reported_noise must be (2, 2), got {noise.shape}")
+            out[k] = noise[0, 0], noise[0, 1], noise[1, 1]
+    return out
 
 
 #: The velocity time constant (s) of the ``robust`` fusion's mean-reverting motion model for

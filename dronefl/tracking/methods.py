@@ -36,7 +36,8 @@ class MeasurementBatch:
     ``target`` / ``drone`` ``(K,)``: indices into the Fuser's id tuples (each pair at most
     once); ``position`` ``(K, 2)`` m. ``targets`` ``(G,)``: the distinct targets, ascending;
     ``start`` / ``count`` ``(G,)``: the first row and the number of rows of each; ``group``
-    ``(K,)``: each row's place in ``targets``.
+    ``(K,)``: each row's place in ``targets``. ``reported`` ``(K, 3)``: each drone's reported
+    noise as ``(xx, xy, yy)`` m² (NaN where it sent none).
     """
 
     target: np.ndarray
@@ -46,18 +47,29 @@ class MeasurementBatch:
     start: np.ndarray
     count: np.ndarray
     group: np.ndarray
+    reported: np.ndarray
 
     @classmethod
-    def of(cls, target: np.ndarray, drone: np.ndarray, position: np.ndarray) -> MeasurementBatch:
-        """The rows ``target`` / ``drone`` ``(K,)``, ``position`` ``(K, 2)`` m, sorted and
-        grouped."""
+    def of(
+        cls,
+        target: np.ndarray,
+        drone: np.ndarray,
+        position: np.ndarray,
+        reported: np.ndarray | None = None,
+    ) -> MeasurementBatch:
+        """The rows ``target`` / ``drone`` ``(K,)``, ``position`` ``(K, 2)`` m and
+        ``reported`` ``(K, 3)`` m² (default: none), sorted and grouped."""
+        if reported is None:
+            reported = np.full((len(target), 3), np.nan)
         order = np.lexsort((drone, target))
-        target, drone, position = target[order], drone[order], position[order]
+        target, drone = target[order], drone[order]
+        position, reported = position[order], reported[order]
         per_target = np.bincount(target)  # rows of every target index
         targets = per_target.nonzero()[0]
         count = per_target[targets]
         group = (per_target > 0).cumsum()[target] - 1
-        return cls(target, drone, position, targets, count.cumsum() - count, count, group)
+        start = count.cumsum() - count
+        return cls(target, drone, position, targets, start, count, group, reported)
 
     def rows(self, group: int) -> slice:
         """The rows of ``targets[group]``."""
@@ -67,7 +79,9 @@ class MeasurementBatch:
     def select(self, keep: np.ndarray) -> MeasurementBatch:
         """The batch of the targets where ``keep`` ``(G,)`` is set."""
         rows = keep[self.group]
-        return MeasurementBatch.of(self.target[rows], self.drone[rows], self.position[rows])
+        return MeasurementBatch.of(
+            self.target[rows], self.drone[rows], self.position[rows], self.reported[rows]
+        )
 
 
 @dataclass(frozen=True)
@@ -223,6 +237,11 @@ class RobustAdaptive(FusionMethod):
     the same slow error does not); otherwise, of ``w_i y_i y_i^T / c - A`` (the paper's
     innovation form). ``c`` (:func:`huber_second_moment`) makes the sample unbiased for
     Gaussian errors; the eigenvalue floor keeps ``R`` positive definite.
+
+    *Reported split.* Two drones' residual measures ``R_1 + R_2``, never the split: the
+    adaptation leaves it where the errors' slow parts push it. With ``noise_split =
+    "reported"`` every step first shares the adapted total of a target's drones in proportion
+    to the noises they report (:meth:`_split_by_reports`).
     """
 
     def __init__(self, config: FusionConfig, n_drones: int, n_targets: int) -> None:
@@ -245,6 +264,8 @@ class RobustAdaptive(FusionMethod):
     def update(self, batch, mean, covariance) -> BatchUpdate:
         config = self.config
         gate = math.inf if config.gate is None else config.gate
+        if config.noise_split == "reported":
+            self._split_by_reports(batch)
         group = batch.group
         z = batch.position.T  # (2, K)
         r = self._r[:, batch.drone, batch.target] * self._inflation  # R~_i, (3, K)
@@ -273,6 +294,26 @@ class RobustAdaptive(FusionMethod):
         if config.adaptive:
             self._adapt(batch, y, a, residual, rest, weight, accepted, consensus)
         return BatchUpdate(mean, covariance, accepted)
+
+    def _split_by_reports(self, batch: MeasurementBatch) -> None:
+        r"""Share the adapted noise of every target that two or more drones see, all with a
+        report, in proportion to their reported noises ``S_i``:
+        ``R_i <- S_i \sum_k tr R_k / \sum_k tr S_k`` (the total trace is kept: the drones'
+        consensus measures the sum, not the split)."""
+        reported = batch.reported.T  # (3, K)
+        has = np.isfinite(reported).all(axis=0) & (reported[0] + reported[2] > 0)
+        complete = np.add.reduceat(has, batch.start, dtype=int) == batch.count  # (G,)
+        rows = (complete & (batch.count >= 2))[batch.group]
+        if not rows.any():
+            return
+        drone, target, group = batch.drone[rows], batch.target[rows], batch.group[rows]
+        shares = reported[:, rows]
+        current = self._r[:, drone, target]
+        n = len(batch.targets)
+        total = np.bincount(group, weights=current[0] + current[2], minlength=n)
+        reported_total = np.bincount(group, weights=shares[0] + shares[2], minlength=n)
+        scale = total[group] / reported_total[group]
+        self._r[:, drone, target] = _floor_sym(shares * scale, self._floor)
 
     def _adapt(self, batch, y, a, residual, rest, weight, accepted, consensus) -> None:
         """EMA of every fused pair's ``R`` toward its weighted sample (class doc): from the

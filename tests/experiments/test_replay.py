@@ -1,14 +1,27 @@
 """dronefl replay: a tiny hand-made episode re-fused with the paper's and the robust method;
-per-drone errors by hand; JSON and markdown written; bad folders give one-line errors."""
+per-drone errors by hand; JSON and markdown written; bad folders give one-line errors; the
+drones' noise reports rebuilt from their records."""
 
 import json
+import pickle
+from dataclasses import fields
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
 from dronefl.cli import app
-from dronefl.experiments.replay import EpisodeError, load_episode, replay, replay_config
+from dronefl.config import load_scenario
+from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
+from dronefl.experiments.replay import (
+    EpisodeError,
+    drone_reports,
+    load_episode,
+    replay,
+    replay_config,
+)
+from dronefl.models.online import OnboardRecord
+from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, PositionMeasurement
 
 DT = 0.2  # s, the scenarios' step
@@ -130,3 +143,48 @@ def test_unknown_fusion_settings_are_named(tmp_path):
     result = CliRunner().invoke(app, ["replay", str(tmp_path / "ep"), "--max-std", "-1"])
     assert result.exit_code == 2
     assert "max_std" in result.output
+
+
+def _records_checkpoint(folder, truth):
+    """A checkpoint holding only the drones' onboard records: every drone hovers at (15, 5) m
+    and detects every target exactly (box centres projected from the truth)."""
+    scenario = load_scenario("case2")
+    camera = PinholeCamera.from_spec(scenario.camera)
+    height = scenario.vehicle.height / 2
+    records = []
+    for drone in scenario.drones:
+        n = len(truth)
+        record = OnboardRecord(drone.id, drone.altitude, scenario.target_ids, drone.targets, n, {})
+        record.odometry[:, :3] = (15.0, 5.0, drone.altitude)
+        points = np.concatenate([truth, np.full((*truth.shape[:2], 1), height)], axis=-1)
+        uv, _ = camera.project(points, record.odometry[0, :3], 0.0)
+        record.boxes[..., :2], record.boxes[..., 2:] = uv, 0.02
+        record.detected[:] = True
+        record.steps = n
+        records.append(record)
+    empty = dict.fromkeys(f.name for f in fields(LoopCheckpoint) if f.name != "format")
+    checkpoint = LoopCheckpoint(**{**empty, "records": records})
+    (folder / CHECKPOINT_NAME).write_bytes(pickle.dumps(checkpoint))
+
+
+def test_replay_rebuilds_the_drones_noise_reports_from_their_records(tmp_path):
+    prediction, truth = _episode(tmp_path / "ep", n_steps=400)
+    episode = load_episode(tmp_path / "ep")
+    with pytest.raises(EpisodeError, match="checkpoint.pkl: not found"):
+        drone_reports(episode)
+    _records_checkpoint(tmp_path / "ep", truth)
+    reports = drone_reports(episode)
+    # Exact detections: each report is the EMA of the prediction's own squared error:
+    # 0.5^2 per axis for drone 1, 0.2^2 for drone 2 on target 2; none for drone 3.
+    final = reports[-1]
+    assert np.trace(final[0, 1]) == pytest.approx(2 * 0.25, rel=0.35)
+    assert np.trace(final[1, 1]) == pytest.approx(2 * 0.04, rel=0.35)
+    assert np.isnan(final[2]).all() and np.isnan(final[1, 0]).all()
+    result = replay(episode, replay_config(episode.scenario, noise_split="reported"))
+    assert result.fusion.noise_split == "reported"
+    assert result.targets[1].fused_over_best < 1.0
+    runner = CliRunner()
+    ok = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--noise-split", "reported"])
+    assert ok.exit_code == 0, ok.output
+    bad = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--noise-split", "oracle"])
+    assert bad.exit_code == 2 and "noise_split" in bad.output

@@ -2,7 +2,6 @@
 
 import json
 import pickle
-import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -14,15 +13,14 @@ from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.experiments.track import RECOMMENDED, LoopParts, TrackConfig, run_episode
-from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
+from dronefl.experiments.track import RECOMMENDED, TrackConfig, run_episode
+from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.learners import LearnerSetup
 from dronefl.learners.centralized import CentralizedLearner
 from dronefl.learners.federated import session_settings
 from dronefl.logs import LogError, PseudoLabels
-from dronefl.models.model import build_model, predictor_config
+from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
-from dronefl.perception import make_detector
 from dronefl.types import Detection, Odometry
 
 
@@ -133,54 +131,6 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
     assert first.shape == last.shape and (first != last).any(axis=-1).sum() > 50
     again = run_episode(replace(config, animate=False))  # the GIF is not part of the result
     assert again.tracking == metrics.tracking
-
-
-def test_centralized_vision_ships_jpeg_frames_and_counts_them(quick_pretrained, tmp_path):
-    # Prepare: an (untrained) large cloud model in a copy of the cache (the shared one is only
-    # read); accuracy is not under test.
-    pretrained = shutil.copytree(quick_pretrained, tmp_path / "pretrained")
-    settings = PretrainSpec(load_scenario("case1"), "centralized").settings(pretrained)
-    model = build_model(predictor_config("large", 10, 1), seed=0)
-    save_checkpoint(
-        settings.checkpoint_path,
-        settings.history_path,
-        Checkpoint("centralized", settings.rounds, model.state_dict(), []),
-    )
-    config = TrackConfig(
-        scenario=load_scenario("case1"), method="centralized", detector="yolo", seed=0,
-        duration=2.0, environment="crop_field", runtime="torch", pretrained=pretrained,
-        out=tmp_path / "episode", progress=False, animate=False,
-    )  # fmt: skip
-    # Execute: 10 steps, every drone's frame rendered, JPEG-encoded, decoded and detected.
-    metrics = run_episode(config)
-    # Assert: per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry; no
-    # predictions travel (the cloud predicts), the controls come down.
-    assert "JPEG" in metrics.centralized_inputs
-    comm = metrics.communication
-    for drone in (1, 2):
-        assert 20 * 5 < comm.kb_per_s(drone, "up", "frames") < 200 * 5  # KB/s at 5 Hz
-        assert comm.kb_per_s(drone, "up", "odometry") == pytest.approx(53 * 5 / 1000)
-        assert comm.kb_per_s(drone, "down", "control") == pytest.approx(14 * 5 / 1000)
-    assert ("up", "predictions") not in comm.kinds()
-    assert metrics.tracking.prediction_coverage > 0.0
-
-
-def test_the_episode_frees_its_renderer_at_the_end(quick_pretrained, tmp_path):
-    built = []
-
-    def detector(name, world):
-        built.append(make_detector(name, world))
-        return built[-1]
-
-    config = TrackConfig(
-        scenario=load_scenario("case1"), method="fixed", detector="yolo", duration=3.0,
-        environment="crop_field", pretrained=quick_pretrained, out=tmp_path,
-        progress=False, animate=False,
-    )  # fmt: skip
-    run_episode(config, LoopParts(detector=detector))
-    # Closed by the episode, in its own thread (EGL refuses a context freed from another one).
-    (yolo,) = built
-    assert yolo.renderer is None
 
 
 @pytest.mark.slow

@@ -15,11 +15,12 @@ import torch
 from dronefl.config import load_scenario
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.experiments.track import TRACK_METHODS, TrackConfig, run_episode
+from dronefl.experiments.track import TRACK_METHODS, LoopParts, TrackConfig, run_episode
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
 from dronefl.io import atomic_savez
 from dronefl.models.image import FrameTransformer
 from dronefl.models.model import build_model, count_parameters, predictor_config
+from dronefl.perception import make_detector
 
 TRACK = ["track", "--scenario", "case1", "--method", "centralized-image", "--detector", "yolo",
          "--duration", "10", "--fl-period", "5", "--epochs", "1", "--env", "crop_field",
@@ -54,8 +55,13 @@ def test_every_method_flies_a_vision_episode(vision_pretrained, tmp_path, method
         fl_period=5.0, epochs=1, environment="crop_field", runtime="torch",
         pretrained=vision_pretrained, out=tmp_path, progress=False, animate=False,
     )  # fmt: skip
+    built = []
 
-    metrics = run_episode(config)
+    def detector(name, world):
+        built.append(make_detector(name, world))
+        return built[-1]
+
+    metrics = run_episode(config, LoopParts(detector=detector))
 
     saved = json.loads((tmp_path / "metrics.json").read_text())
     assert saved["detector"] == "yolo" and saved["method"] == method
@@ -73,11 +79,19 @@ def test_every_method_flies_a_vision_episode(vision_pretrained, tmp_path, method
         assert saved["model_parameters"] == count_parameters(
             build_model(config.pretrain_spec().model)
         )
-    if method.startswith("centralized"):  # frames and odometry up, no predictions
+    if method.startswith("centralized"):
+        # Per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry up, the
+        # controls down; no predictions travel (the cloud predicts).
+        assert "JPEG" in metrics.centralized_inputs
         for drone in (1, 2):
             assert 20 * 5 < comm.kb_per_s(drone, "up", "frames") < 200 * 5  # KB/s at 5 Hz
+            assert comm.kb_per_s(drone, "up", "odometry") == pytest.approx(53 * 5 / 1000)
+            assert comm.kb_per_s(drone, "down", "control") == pytest.approx(14 * 5 / 1000)
         assert ("up", "predictions") not in comm.kinds()
     else:  # each drone detects on board and sends its predictions
+        # The episode closed the detector's renderer, in its own thread (EGL refuses a context
+        # freed from another one).
+        assert [part.renderer for part in built] == [None]
         assert ("up", "frames") not in comm.kinds()
         assert comm.kb_per_s(kind="predictions") > 0
 

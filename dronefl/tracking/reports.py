@@ -1,0 +1,106 @@
+"""Each drone's own estimate of its prediction noise, from its next detection.
+
+A drone predicts at step ``k`` where each of its targets will be at ``k + 1``. At ``k + 1`` it
+detects the target again and back-projects the box centre onto the ground, which gives it a
+measurement ``g`` of where the target is that needs no model. Its forecast residual
+``e = z_k - g_{k+1}`` has second moment
+
+.. math::
+    E[e e^T] = R_{pred} + R_{proj} - 2\\,\\mathrm{cov}(\\cdot)
+
+the prediction error it wants plus the projection error of one box (a few cm² to a few dm²:
+it grows with the altitude, as the prediction error does). :class:`ForecastResidual` keeps an
+EMA of ``e e^T`` per target, the *reported noise* the drone can send with its predictions.
+
+The cloud cannot get this split from the predictions alone: with two drones on a target the
+residual between them measures only ``R_1 + R_2``. The reports give the ratio (measured on
+Case 3's tuning episodes: they rank the high drone above the low one on every target, where
+the consensus estimate ranks them wrong), the fusion's adaptive ``R`` the scale
+(:attr:`~dronefl.tracking.FusionConfig.noise_split`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from dronefl.sim.camera import PinholeCamera
+
+#: EMA rate per detected step of the reported noise (the fusion's adaptation rate).
+REPORT_RATE = 0.02
+
+
+def box_ground_positions(
+    camera: PinholeCamera,
+    boxes: np.ndarray,
+    odometry: np.ndarray,
+    ground_z: float,
+) -> np.ndarray:
+    """Back-project the centres of ``boxes`` ``(..., n, 4)`` (normalised ``cx, cy, w, h``)
+    seen from the drone at ``odometry`` ``(..., 12)`` onto the plane ``z = ground_z`` m;
+    returns world positions ``(..., n, 2)`` m (NaN where a box is NaN)."""
+    boxes = np.asarray(boxes, dtype=float)
+    odometry = np.asarray(odometry, dtype=float)
+    out = np.full((*boxes.shape[:-1], 2), np.nan)
+    for index in np.ndindex(boxes.shape[:-2]):
+        pose = odometry[index]
+        out[index] = camera.ground_point(boxes[index][:, :2], pose[:3], float(pose[8]), ground_z)
+    return out
+
+
+class ForecastResidual:
+    """One drone's running estimate of each target's prediction noise, ``(n, 2, 2)`` m².
+
+    Call :meth:`observe` once per step with the ground positions of this step's detections
+    (NaN where the target was not detected); :meth:`predicted` with this step's predictions.
+    The residual of the previous step's prediction against this step's detection updates
+    ``S_j <- (1 - rate) S_j + rate e e^T``; a target without both keeps its estimate.
+    :meth:`noise` is NaN for a target that has had no residual yet.
+    """
+
+    def __init__(self, n_targets: int, rate: float = REPORT_RATE) -> None:
+        if not 0 < rate <= 1:
+            raise ValueError(f"rate: must be in (0, 1], got {rate}")
+        self.rate = rate
+        self._s = np.full((n_targets, 2, 2), np.nan)
+        self._last = np.full((n_targets, 2), np.nan)
+
+    def observe(self, detected: np.ndarray) -> None:
+        """Update from this step's detected ground positions ``(n, 2)`` m."""
+        e = self._last - np.asarray(detected, dtype=float)
+        ok = np.isfinite(e).all(axis=1)
+        sample = e[ok, :, None] * e[ok, None, :]
+        old = self._s[ok]
+        self._s[ok] = np.where(np.isnan(old), sample, (1 - self.rate) * old + self.rate * sample)
+
+    def predicted(self, positions: np.ndarray) -> None:
+        """Remember this step's predictions ``(n, 2)`` m (NaN: none) for the next residual."""
+        self._last = np.array(positions, dtype=float)
+
+    def noise(self) -> np.ndarray:
+        """The reported noise of every target, ``(n, 2, 2)`` m² (a copy)."""
+        return self._s.copy()
+
+
+def forecast_residual_reports(
+    predictions: np.ndarray,
+    detected: Sequence[np.ndarray],
+    rate: float = REPORT_RATE,
+) -> np.ndarray:
+    """The noise every drone would have reported with each prediction of an episode.
+
+    ``predictions`` ``(K, M, N, 2)``: the prediction made at step ``k`` for ``k + 1`` (NaN:
+    none); ``detected[i]`` ``(>= K, N, 2)``: drone ``i``'s back-projected detections per step.
+    Returns ``(K, M, N, 2, 2)``: the report sent with prediction ``k``, built from the
+    residuals of predictions ``0 .. k - 1`` (causal: what the drone knew when it sent it).
+    """
+    n_steps, n_drones, n_targets, _ = predictions.shape
+    reports = np.full((n_steps, n_drones, n_targets, 2, 2), np.nan)
+    for i in range(n_drones):
+        residual = ForecastResidual(n_targets, rate)
+        for k in range(n_steps):
+            residual.observe(detected[i][k])
+            reports[k, i] = residual.noise()
+            residual.predicted(predictions[k, i])
+    return reports

@@ -1,0 +1,124 @@
+"""The drones' own noise reports: the forecast residual against the next detection, its
+ground back-projection, its causality, and the fusion sharing two drones' R by the reports."""
+
+import numpy as np
+import pytest
+
+from dronefl.config import load_scenario
+from dronefl.sim.camera import PinholeCamera
+from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
+from dronefl.tracking.reports import (
+    ForecastResidual,
+    box_ground_positions,
+    forecast_residual_reports,
+)
+
+DT = 0.2  # s
+
+
+def test_box_centres_back_project_to_the_points_that_made_them():
+    scenario = load_scenario("case3")
+    camera = PinholeCamera.from_spec(scenario.camera)
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-20, 20, (5, 2)), np.full(5, 0.75)])  # (5, 3) m
+    pose = np.zeros(12)
+    pose[:3], pose[8] = (3.0, -2.0, 40.0), 0.4  # position (m) and yaw (rad)
+    uv, _ = camera.project(points, pose[:3], pose[8])
+    boxes = np.column_stack([uv, np.full((5, 2), 0.01)])
+    boxes[2] = np.nan  # not detected
+    ground = box_ground_positions(camera, boxes[None], pose[None], ground_z=0.75)[0]
+    assert np.allclose(np.delete(ground, 2, axis=0), np.delete(points[:, :2], 2, axis=0))
+    assert np.isnan(ground[2]).all()
+
+
+def test_the_reported_noise_converges_to_prediction_plus_detection_noise():
+    # A drone predicts with N(0, 0.5^2) m per axis and detects with N(0, 0.1^2): its
+    # residual's second moment is (0.25 + 0.01) I m^2.
+    rng = np.random.default_rng(1)
+    n = 20000
+    truth = np.cumsum(rng.normal(0, 0.1, (n + 1, 1, 2)), axis=0)
+    predictions = (truth[1:] + rng.normal(0, 0.5, (n, 1, 2)))[:, None]  # (K, M=1, N=1, 2)
+    detected = [truth + rng.normal(0, 0.1, truth.shape)]
+    reports = forecast_residual_reports(predictions, detected, rate=0.002)
+    assert np.isnan(reports[0]).all()  # nothing to compare with yet
+    final = reports[-1, 0, 0]
+    assert final == pytest.approx(0.26 * np.eye(2), abs=0.026)
+
+
+def test_a_report_uses_only_what_the_drone_knew_when_it_sent_it():
+    rng = np.random.default_rng(2)
+    predictions = rng.normal(0, 1, (50, 2, 3, 2))
+    detected = [rng.normal(0, 1, (50, 3, 2)) for _ in range(2)]
+    reports = forecast_residual_reports(predictions, detected)
+    later = [d.copy() for d in detected]
+    later[0][30:] += 5.0  # detections from step 30 on
+    predictions_later = predictions.copy()
+    predictions_later[30:] += 5.0  # predictions from step 30 on
+    again = forecast_residual_reports(predictions_later, later)
+    assert np.array_equal(reports[:30], again[:30], equal_nan=True)
+    assert not np.allclose(reports[31:, 0], again[31:, 0])
+
+
+def test_forecast_residual_refuses_a_bad_rate():
+    with pytest.raises(ValueError, match="rate"):
+        ForecastResidual(3, rate=0.0)
+
+
+def test_the_split_shares_the_adapted_total_in_proportion_to_the_reports():
+    config = FusionConfig(adaptive=False, noise_split="reported", initial_noise_std=1.0)
+    fuser = Fuser([1], [1, 2, 3], config)
+    small, large = np.diag([0.04, 0.02]), np.diag([1.0, 1.0])
+    fuser.update(0.0, [PositionMeasurement(d, 1, np.zeros(2)) for d in (1, 2)])  # birth
+    fuser.update(
+        DT,
+        [
+            PositionMeasurement(1, 1, np.zeros(2), small),
+            PositionMeasurement(2, 1, np.zeros(2), large),
+        ],
+    )
+    total = 4.0  # tr R_1 + tr R_2 before: 2 + 2 m^2
+    scale = total / (np.trace(small) + np.trace(large))
+    assert fuser.measurement_noise(1, 1) == pytest.approx(small * scale)
+    assert fuser.measurement_noise(2, 1) == pytest.approx(large * scale)
+    # A target whose drones did not all report keeps its R; so does a lone drone.
+    before = fuser.measurement_noise(3, 1)
+    fuser.update(
+        2 * DT,
+        [PositionMeasurement(1, 1, np.zeros(2), small), PositionMeasurement(3, 1, np.zeros(2))],
+    )
+    assert fuser.measurement_noise(3, 1) == pytest.approx(before)
+    fuser.update(3 * DT, [PositionMeasurement(3, 1, np.zeros(2), small)])
+    assert fuser.measurement_noise(3, 1) == pytest.approx(before)
+
+
+def test_reports_let_the_fusion_beat_the_better_of_two_drones_with_slow_errors():
+    # Two drones whose errors are slow (AR(1), phi = 0.995 per step) with variances 1.0 and
+    # 0.05 m^2 per axis: their disagreement measures only the sum of their noises.
+    rng = np.random.default_rng(3)
+    n, phi = 3000, 0.995
+    truth = np.column_stack([0.5 * DT * np.arange(n), np.zeros(n)])
+    errors = np.zeros((n, 2, 2))
+    std = np.sqrt(np.array([1.0, 0.05]))[:, None]
+    for k in range(1, n):
+        errors[k] = phi * errors[k - 1] + np.sqrt(1 - phi**2) * std * rng.normal(size=(2, 2))
+    reports = [np.eye(2) * v for v in (1.0, 0.05)]
+    mse = {}
+    for split in ("adaptive", "reported"):
+        fuser = Fuser([1], [1, 2], FusionConfig(noise_split=split))
+        fused = []
+        for k in range(n):
+            measurements = [
+                PositionMeasurement(d, 1, truth[k] + errors[k, i], reports[i])
+                for i, d in enumerate((1, 2))
+            ]
+            fused.append(fuser.update(k * DT, measurements)[1].position)
+        mse[split] = float((((np.array(fused) - truth) ** 2).sum(axis=1))[500:].mean())
+    best = float((errors[500:, 1] ** 2).sum(axis=1).mean())
+    assert mse["reported"] < best < mse["adaptive"]
+
+
+def test_the_reported_split_is_a_robust_fusion_setting():
+    with pytest.raises(ValueError, match="noise_split.*robust"):
+        FusionConfig(method="paper", noise_split="reported")
+    with pytest.raises(ValueError, match="noise_split"):
+        FusionConfig(noise_split="oracle")
