@@ -558,6 +558,14 @@ LabelsOption = Annotated[
     ),
 ]
 FusionOption = Annotated[str, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
+NoiseSplitOption = Annotated[
+    str,
+    typer.Option(
+        "--noise-split",
+        help="adaptive | reported: the drones send their own noise estimates, by which the "
+        "robust fusion shares two drones' adapted R.",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -613,6 +621,7 @@ def track(
     label_drones: LabelDronesOption = "all",
     deshrink_labels: DeshrinkOption = False,
     fusion: FusionOption = "robust",
+    noise_split: NoiseSplitOption = "adaptive",
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
@@ -650,6 +659,7 @@ def track(
         label_drones=label_drones,
         deshrink_labels=deshrink_labels,
         fusion=fusion,
+        noise_split=noise_split,
         past_steps=past_steps,
         preset=preset,
         epochs=epochs,
@@ -712,6 +722,7 @@ def table1(
     label_drones: LabelDronesOption = "all",
     deshrink_labels: DeshrinkOption = False,
     fusion: FusionOption = "robust",
+    noise_split: NoiseSplitOption = "adaptive",
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -738,7 +749,7 @@ def table1(
     base = _track_config(
         scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period, labels=labels,
         label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
-        preset=preset, epochs=epochs, lr=lr,
+        noise_split=noise_split, preset=preset, epochs=epochs, lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,

@@ -19,6 +19,13 @@ saturated at the edge (the cloud's gate rejects such an outlier anyway).
 
     u8 version | u8 drone_id | u32 step | f32 ax (m/s^2) | f32 ay (m/s^2)
 
+``NoiseReportMessage`` (drone -> cloud, only with the fusion's ``noise_split = reported``),
+``7 + 7 n`` bytes for ``n`` targets: the drone's own estimate of each prediction's error
+(:mod:`dronefl.tracking.reports`) as half floats (3 significant digits, up to 65504 m²)::
+
+    u8 version | u8 drone_id | u32 step | u8 count = n
+    n x ( u8 target_id | f16 xx | f16 xy | f16 yy )   (m^2)
+
 Raw inputs of the centralized baseline (drone -> cloud), :func:`raw_inputs_message`,
 ``53 + 17 b`` bytes for ``b`` boxes (none when the cloud detects on the drone's JPEG frame,
 which is counted separately)::
@@ -45,6 +52,8 @@ _PRED_ITEM = struct.Struct("<BBhh")
 #: Largest |coordinate| a prediction message carries, m (i16 centimetres).
 MAX_COORDINATE = 32767 / 100
 _CONTROL = struct.Struct("<BBIff")
+_NOISE_HEAD = struct.Struct("<BBIB")
+_NOISE_ITEM = struct.Struct("<Beee")
 _RAW_HEAD = struct.Struct("<BI12f")
 _RAW_BOX = struct.Struct("<B4f")
 
@@ -127,6 +136,49 @@ class ControlMessage:
         if not (math.isfinite(ax) and math.isfinite(ay)):
             raise WireError("control message with a non-finite acceleration")
         return cls(drone_id, step, (ax, ay))
+
+
+@dataclass(frozen=True)
+class NoiseReportMessage:
+    """One drone's reported noise of the predictions it sends at one step.
+
+    ``target_ids`` ``(n,)``; ``noise`` ``(n, 2, 2)`` m², symmetric.
+    """
+
+    drone_id: int
+    step: int
+    target_ids: tuple[int, ...]
+    noise: np.ndarray
+
+    def encode(self) -> bytes:
+        """Pack to bytes (format in the module docstring)."""
+        noise = np.clip(np.asarray(self.noise, dtype=float), -65504.0, 65504.0)  # f16 range
+        parts = [_NOISE_HEAD.pack(WIRE_VERSION, self.drone_id, self.step, len(self.target_ids))]
+        for target_id, r in zip(self.target_ids, noise, strict=True):
+            parts.append(_NOISE_ITEM.pack(target_id, r[0, 0], r[0, 1], r[1, 1]))
+        return b"".join(parts)
+
+    @classmethod
+    def decode(cls, data: bytes) -> NoiseReportMessage:
+        """Unpack bytes made by :meth:`encode`; raises :class:`WireError` for anything else
+        (wrong version or length, a target twice, a non-finite or negative variance)."""
+        data = bytes(data)
+        if len(data) < _NOISE_HEAD.size:
+            raise WireError(f"noise report of {len(data)} bytes is shorter than its header")
+        version, drone_id, step, count = _NOISE_HEAD.unpack_from(data)
+        if version != WIRE_VERSION:
+            raise WireError(f"noise report version {version}, expected {WIRE_VERSION}")
+        if len(data) != _NOISE_HEAD.size + count * _NOISE_ITEM.size:
+            raise WireError(f"noise report of {len(data)} bytes does not hold {count} items")
+        items = list(_NOISE_ITEM.iter_unpack(data[_NOISE_HEAD.size :]))
+        target_ids = tuple(item[0] for item in items)
+        if len(set(target_ids)) != count:
+            raise WireError("noise report names a target twice")
+        values = np.array([item[1:] for item in items], dtype=float).reshape(count, 3)
+        if not np.isfinite(values).all() or (values[:, [0, 2]] < 0).any():
+            raise WireError("noise report with a non-finite or negative variance")
+        noise = np.stack([values[:, [0, 1]], values[:, [1, 2]]], axis=1)  # (n, 2, 2)
+        return cls(drone_id, step, target_ids, noise)
 
 
 def raw_inputs_message(

@@ -6,6 +6,7 @@ import pytest
 from dronefl.wire import (
     MAX_COORDINATE,
     ControlMessage,
+    NoiseReportMessage,
     PredictionMessage,
     WireError,
 )
@@ -56,3 +57,20 @@ def test_control_message_round_trip():
 def test_damaged_prediction_messages_are_rejected(data, match):
     with pytest.raises(WireError, match=match):
         PredictionMessage.decode(data)
+
+
+def test_noise_report_size_round_trip_and_damage():
+    noise = np.array([[[0.25, 0.01], [0.01, 0.5]], [[2.0, -0.5], [-0.5, 3.0]]])  # (2, 2, 2) m^2
+    data = NoiseReportMessage(3, 77, (2, 5), noise).encode()
+    assert len(data) == 7 + 7 * 2
+    back = NoiseReportMessage.decode(data)
+    assert (back.drone_id, back.step, back.target_ids) == (3, 77, (2, 5))
+    np.testing.assert_allclose(back.noise, noise, rtol=1e-3)  # half floats: 3 digits
+    assert np.array_equal(back.noise, back.noise.transpose(0, 2, 1))
+    huge = NoiseReportMessage(1, 1, (1,), np.eye(2)[None] * 1e9).encode()
+    assert NoiseReportMessage.decode(huge).noise[0, 0, 0] == 65504.0  # saturated, not inf
+    assert len(NoiseReportMessage(1, 1, (), np.zeros((0, 2, 2))).encode()) == 7
+    with pytest.raises(WireError, match="does not hold"):
+        NoiseReportMessage.decode(data[:-1])
+    with pytest.raises(WireError, match="negative"):
+        NoiseReportMessage.decode(NoiseReportMessage(1, 1, (1,), -np.eye(2)[None]).encode())

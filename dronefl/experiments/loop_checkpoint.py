@@ -10,7 +10,8 @@ from and every part's state at that step:
 * as they are (plain Python and numpy objects, pickled): the world (vehicles, drones, their
   random generators, the clock), the fuser (every track, each pair's adaptive ``R``, the
   recorded forward pass that the pseudo-labels are smoothed from, its counters), every drone's
-  onboard record, the episode log, the byte counter and the FL rounds so far;
+  onboard record, the episode log, the byte counter, the FL rounds so far and, with reported
+  noise (:mod:`dronefl.tracking.reports`), every drone's running estimate;
 * through each part's ``state()`` (the parts that hold runtime objects, which a resumed episode
   builds anew): the detector's (its random generator; an ONNX session or renderer is rebuilt),
   the planner's, the learner's (weights and round history; the Flower driver is the new
@@ -42,6 +43,7 @@ from dronefl.io import atomic_write_bytes
 from dronefl.models.online import OnboardRecord
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser
+from dronefl.tracking.reports import ForecastResidual
 
 #: The checkpoint's file name in the episode folder.
 CHECKPOINT_NAME = "checkpoint.pkl"
@@ -59,6 +61,7 @@ class LoopCheckpoint:
     are those parts' ``state()``; ``predictors`` each drone's on-board predictor weights.
     ``planner_seconds``, ``fl_seconds`` and ``wall_seconds`` are the wall time (s) spent so far
     planning, updating models and in all, over every process that ran the episode.
+    ``reporters``: each drone's noise estimate (``None`` unless the fusion uses reports).
     """
 
     settings: dict[str, str | int | float | bool]
@@ -77,6 +80,7 @@ class LoopCheckpoint:
     planner_seconds: float
     fl_seconds: float
     wall_seconds: float
+    reporters: list[ForecastResidual] | None = None
     format: str = CHECKPOINT_FORMAT
 
 

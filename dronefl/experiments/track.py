@@ -75,14 +75,17 @@ from dronefl.tracking import (
     FUSION_METHODS,
     LABEL_SOURCES,
     Fuser,
+    FusionConfig,
     PositionMeasurement,
     Track,
     fusion_config,
     make_labels,
     set_distances,
 )
+from dronefl.tracking.fusion import NOISE_SPLITS
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
-from dronefl.wire import ControlMessage, PredictionMessage, raw_inputs_message
+from dronefl.tracking.reports import ForecastResidual, box_ground_positions
+from dronefl.wire import ControlMessage, NoiseReportMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
 #: :class:`TrackConfig` fields that do not change an episode's results.
@@ -115,7 +118,9 @@ class TrackConfig:
     the paper; ``others``; ``lower``); ``deshrink_labels`` pushes each drone's labels away
     from it by the pull its predictions show (:func:`dronefl.tracking.labels.deshrink_labels`;
     off: the labels as made); ``fusion`` the cloud's fusion method
-    (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``);
+    (:data:`dronefl.tracking.FUSION_METHODS`: ``robust``, the default, or ``paper``) and
+    ``noise_split`` how it shares two drones' noise (``adaptive``, the default, or
+    ``reported``: the drones send their own noise estimates, :mod:`dronefl.tracking.reports`);
     ``preset`` the training setting (a key of :data:`dronefl.fl.records.PRESETS`: the model
     options, batch and optimiser of the pretraining and of every update); ``epochs`` local
     epochs per update and ``lr`` their learning rate (``None``: the preset's);
@@ -140,6 +145,7 @@ class TrackConfig:
     label_drones: str = "all"
     deshrink_labels: bool = False
     fusion: str = "robust"
+    noise_split: str = "adaptive"
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -170,6 +176,12 @@ class TrackConfig:
             )
         if self.fusion not in FUSION_METHODS:
             raise ValueError(f"--fusion: {self.fusion!r} is not one of {', '.join(FUSION_METHODS)}")
+        if self.noise_split not in NOISE_SPLITS:
+            raise ValueError(
+                f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
+            )
+        if self.noise_split == "reported" and self.fusion != "robust":
+            raise ValueError("--noise-split reported: needs --fusion robust")
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "
@@ -210,9 +222,15 @@ class TrackConfig:
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["scenario"] = self.scenario.name
         del values["resume"]
-        fusion = dataclasses.asdict(fusion_config(self.scenario, self.fusion))
+        fusion = dataclasses.asdict(self.fusion_config())
         values["fusion_config"] = json.dumps(fusion, sort_keys=True)
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
+
+    def fusion_config(self) -> FusionConfig:
+        """The cloud fusion's settings: the closed loop's for the scenario and ``fusion``
+        method (:func:`~dronefl.tracking.fusion_config`) with ``noise_split``."""
+        config = fusion_config(self.scenario, self.fusion)
+        return dataclasses.replace(config, noise_split=self.noise_split)
 
     def settings(self) -> dict[str, str | int | float | bool]:
         """The settings that change the episode's results (:meth:`describe` without
@@ -220,22 +238,22 @@ class TrackConfig:
         return {k: v for k, v in self.describe().items() if k not in NOT_SETTINGS}
 
 
-def scenario_fuser(scenario: Scenario, method: str) -> Fuser:
-    """The cloud's fusion for ``scenario``: one EKF per target fused by ``method``
-    (:data:`dronefl.tracking.FUSION_METHODS`, settings of :func:`fusion_config`)."""
-    return Fuser(scenario.target_ids, scenario.drone_ids, fusion_config(scenario, method))
+def scenario_fuser(scenario: Scenario, config: FusionConfig) -> Fuser:
+    """The cloud's fusion for ``scenario``: one EKF per target, with ``config``
+    (:meth:`TrackConfig.fusion_config`)."""
+    return Fuser(scenario.target_ids, scenario.drone_ids, config)
 
 
 @dataclass(frozen=True)
 class LoopParts:
     """The parts of the closed loop a researcher swaps to compare, each a factory:
     ``detector(name, world)`` the drones' detector (``name`` is ``TrackConfig.detector``),
-    ``fuser(scenario, method)`` the cloud's fusion (``method`` is ``TrackConfig.fusion``),
+    ``fuser(scenario, fusion_config)`` the cloud's fusion (:meth:`TrackConfig.fusion_config`),
     ``planner(scenario)`` the cloud's planner. The predictor and how it learns are the method's
     (:data:`dronefl.learners.LEARNERS`; FL strategies in :data:`dronefl.fl.methods.METHODS`)."""
 
     detector: Callable[[str, World], Detector] = make_detector
-    fuser: Callable[[Scenario, str], Fuser] = scenario_fuser
+    fuser: Callable[[Scenario, FusionConfig], Fuser] = scenario_fuser
     planner: Callable[[Scenario], Planner] = DroneFLPlanner.from_scenario
 
 
@@ -330,7 +348,7 @@ class ClosedLoop:
             self.detector = CloudVisionDetector.for_world(self.world)
         else:
             self.detector = parts.detector(config.detector, self.world)
-        self.fuser = parts.fuser(scenario, config.fusion)
+        self.fuser = parts.fuser(scenario, config.fusion_config())
         self.planner = parts.planner(scenario)
         self.counter = ByteCounter()
         self.n_steps = int(round(config.duration * scenario.rate_hz))
@@ -344,6 +362,9 @@ class ClosedLoop:
         self.planner_seconds = 0.0
         self.rounds: list[ClosedLoopRound] = []
         self.fl_seconds = 0.0
+        self.reporters: list[ForecastResidual] | None = None
+        if config.noise_split == "reported":
+            self.reporters = [ForecastResidual(len(scenario.target_ids)) for _ in self.records]
         if saved is not None:
             self._restore(saved)
 
@@ -368,6 +389,7 @@ class ClosedLoop:
             planner_seconds=self.planner_seconds,
             fl_seconds=self.fl_seconds,
             wall_seconds=wall_seconds,
+            reporters=self.reporters,
         )
 
     def _restore(self, saved: LoopCheckpoint) -> None:
@@ -378,6 +400,7 @@ class ClosedLoop:
         self.learner.restore(saved.learner)
         self.predictors = {d: self._predictor(s) for d, s in saved.predictors.items()}
         self.planner_seconds, self.fl_seconds = saved.planner_seconds, saved.fl_seconds
+        self.reporters = saved.reporters
 
     def step(self, k: int) -> None:
         """Step ``k``: detect -> predict -> send -> fuse -> plan -> send -> step."""
@@ -388,6 +411,8 @@ class ClosedLoop:
         ):
             detections = self.detector.detect(view)
             record.append(odometry, detections)
+            if self.reporters is not None:
+                self._observe(i, record)
             if self.frames_in:
                 self.learner.receive(i, self.detector.last_frame)
             if self.learner.cloud_predicts:
@@ -474,11 +499,46 @@ class ClosedLoop:
             self.counter.add(record.drone_id, "up", "predictions", len(data))
             received = PredictionMessage.decode(data)
             ids, positions = received.target_ids, received.positions[:, 0]
+        reports = self._reports(k, i, record.drone_id, ids, positions)
         measurements = []
-        for target_id, position in zip(ids, positions, strict=True):
+        for target_id, position, report in zip(ids, positions, reports, strict=True):
             self.log.prediction[k, i, self.column[target_id]] = position
-            measurements.append(PositionMeasurement(record.drone_id, target_id, position))
+            measurements.append(PositionMeasurement(record.drone_id, target_id, position, report))
         return measurements
+
+    def _observe(self, i: int, record: OnboardRecord) -> None:
+        """Drone ``i`` compares its last predictions with the detections it just stored,
+        back-projected onto the ground at half the vehicles' height."""
+        k = record.steps - 1
+        boxes = np.where(record.detected[k, :, None], record.boxes[k], np.nan)
+        ground = box_ground_positions(
+            self.world.camera, boxes, record.odometry[k], self.scenario.vehicle.height / 2
+        )
+        self.reporters[i].observe(ground)
+
+    def _reports(
+        self, k: int, i: int, drone_id: int, ids: tuple[int, ...], positions: np.ndarray
+    ) -> list[np.ndarray | None]:
+        """The noise drone ``i`` reports with its predictions ``positions`` of ``ids`` at
+        step ``k`` (as the cloud receives it; ``None`` without reports or for a target with no
+        residual yet); the drone keeps the predictions for its next residual."""
+        if self.reporters is None:
+            return [None] * len(ids)
+        reporter = self.reporters[i]
+        noise = reporter.noise()
+        predicted = np.full((len(self.scenario.target_ids), 2), np.nan)
+        for target_id, position in zip(ids, positions, strict=True):
+            predicted[self.column[target_id]] = position
+        reporter.predicted(predicted)
+        known = tuple(t for t in ids if np.isfinite(noise[self.column[t]]).all())
+        sent = noise[[self.column[t] for t in known]].reshape(-1, 2, 2)
+        if not self.learner.cloud_predicts:  # the drone sends them beside its predictions
+            data = NoiseReportMessage(drone_id, k, known, sent).encode()
+            self.counter.add(drone_id, "up", "noise_reports", len(data))
+            received = NoiseReportMessage.decode(data)
+            known, sent = received.target_ids, received.noise
+        by_id = dict(zip(known, sent, strict=True))
+        return [by_id.get(t) for t in ids]
 
     def _send_raw_inputs(self, k: int, record: OnboardRecord, odometry, detections) -> None:
         """The centralized baselines' uplink: odometry and boxes, or odometry and the JPEG

@@ -32,6 +32,8 @@ from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 if TYPE_CHECKING:
     from dronefl.config import Scenario
 
+#: How two or more drones' noise is shared (:attr:`FusionConfig.noise_split`).
+NOISE_SPLITS: tuple[str, ...] = ("adaptive", "reported")
 #: The target motion models by name (:attr:`FusionConfig.motion`).
 MOTIONS: tuple[str, ...] = ("constant_velocity", "mean_reverting", "coordinated_turn")
 
@@ -123,8 +125,10 @@ class FusionConfig:
                 f"noise_estimate: {self.noise_estimate!r} is not one of consensus, innovation, "
                 "grubbs"
             )
-        if self.noise_split not in ("adaptive", "reported"):
-            raise ValueError(f"noise_split: {self.noise_split!r} is not one of adaptive, reported")
+        if self.noise_split not in NOISE_SPLITS:
+            raise ValueError(
+                f"noise_split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
+            )
         if self.noise_split == "reported" and self.method != "robust":
             raise ValueError("noise_split: 'reported' needs the robust fusion method")
         for name in ("gate", "consensus_gate"):

@@ -53,9 +53,10 @@ class ForecastResidual:
     """One drone's running estimate of each target's prediction noise, ``(n, 2, 2)`` m².
 
     Call :meth:`observe` once per step with the ground positions of this step's detections
-    (NaN where the target was not detected); :meth:`predicted` with this step's predictions.
-    The residual of the previous step's prediction against this step's detection updates
-    ``S_j <- (1 - rate) S_j + rate e e^T``; a target without both keeps its estimate.
+    (NaN where the target was not detected), then :meth:`predicted` with this step's
+    predictions (a step without any: skip it). The residual of the previous step's prediction
+    against this step's detection updates ``S_j <- (1 - rate) S_j + rate e e^T`` (the first
+    sample is taken as it is); a target without both keeps its estimate.
     :meth:`noise` is NaN for a target that has had no residual yet.
     """
 
@@ -73,6 +74,7 @@ class ForecastResidual:
         sample = e[ok, :, None] * e[ok, None, :]
         old = self._s[ok]
         self._s[ok] = np.where(np.isnan(old), sample, (1 - self.rate) * old + self.rate * sample)
+        self._last[:] = np.nan  # a prediction is compared with the next step's detection only
 
     def predicted(self, positions: np.ndarray) -> None:
         """Remember this step's predictions ``(n, 2)`` m (NaN: none) for the next residual."""

@@ -1,0 +1,80 @@
+"""The drones' noise reports in the closed loop (``--noise-split reported``): sent beside the
+predictions and counted, the fusion's setting in metrics.json, a replay of the episode
+reproducing its tracks, and a killed episode resuming bit-identically (each drone's running
+estimate is in the checkpoint)."""
+
+import json
+import pickle
+import signal
+
+import numpy as np
+import pytest
+
+from dronefl.config import load_scenario
+from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
+from dronefl.experiments.replay import load_episode, replay, replay_config
+from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
+
+ARGS = ["--scenario", "case2", "--method", "fixed", "--noise-split", "reported",
+        "--duration", "21", "--fl-period", "7", "--no-animate"]  # fmt: skip
+WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
+
+
+def _outcome(out):
+    metrics = json.loads((out / "metrics.json").read_text())
+    for name in WALL_CLOCK:
+        metrics.pop(name)
+    metrics["config"] = {
+        k: v for k, v in metrics["config"].items() if k not in NOT_SETTINGS
+    }  # how it ran (a process with progress bars, or one without), not what ran
+    with np.load(out / "episode.npz") as npz:
+        return metrics, {k: npz[k] for k in npz.files}
+
+
+@pytest.mark.slow
+def test_reported_noise_flies_resumes_and_replays(quick_pretrained_case2, tmp_path, cli_process):
+    pretrained = quick_pretrained_case2
+    killed = tmp_path / "killed"
+    argv = ["track", *ARGS, "--pretrained", str(pretrained), "--out", str(killed)]
+    # Killed while writing the second checkpoint (step 70): step 35's survives.
+    crash = f"write:{CHECKPOINT_NAME}@2"
+    assert cli_process(argv, crash) == -signal.SIGKILL
+    with (killed / CHECKPOINT_NAME).open("rb") as handle:
+        saved = pickle.load(handle)
+    assert saved.step == 35 and len(saved.reporters) == 3
+    assert cli_process([*argv, "--resume"]) == 0
+
+    config = TrackConfig(
+        scenario=load_scenario("case2"), method="fixed", noise_split="reported", duration=21.0,
+        fl_period=7.0, pretrained=pretrained, out=tmp_path / "reference", progress=False,
+        animate=False,
+    )  # fmt: skip
+    metrics = run_episode(config)
+    reference = _outcome(tmp_path / "reference")
+    resumed = _outcome(killed)
+    assert resumed[0] == reference[0]
+    for key, array in reference[1].items():
+        np.testing.assert_array_equal(resumed[1][key], array, err_msg=key)
+
+    # Sent and counted: 7 + 7 n bytes per drone and step beside 9 + 6 n of predictions.
+    assert json.loads(metrics.config["fusion_config"])["noise_split"] == "reported"
+    comm = metrics.communication
+    for drone in (1, 2, 3):
+        reports = comm.kb_per_s(drone, "up", "noise_reports")
+        predictions = comm.kb_per_s(drone, "up", "predictions")
+        assert 0 < reports < 1.2 * predictions
+    # A replay with the same split rebuilds the reports from the drones' records: the same
+    # tracks but for the half-float rounding of the reports on the radio.
+    episode = load_episode(tmp_path / "reference")
+    again = replay(episode, replay_config(episode.scenario, noise_split="reported"))
+    as_flown = [t.recorded_mse for t in again.targets]
+    np.testing.assert_allclose([t.fused_mse for t in again.targets], as_flown, rtol=0.02)
+
+
+def test_reported_noise_needs_the_robust_fusion(tmp_path):
+    with pytest.raises(ValueError, match="--noise-split reported: needs --fusion robust"):
+        TrackConfig(
+            scenario=load_scenario("case2"), noise_split="reported", fusion="paper", out=tmp_path
+        )
+    with pytest.raises(ValueError, match="--noise-split"):
+        TrackConfig(scenario=load_scenario("case2"), noise_split="oracle", out=tmp_path)
