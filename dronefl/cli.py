@@ -147,8 +147,8 @@ def demo(
 ) -> None:
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
-    the recommended setting (--config metric-scaffold --label-drones lower --epochs 1), for
-    600 s: seed 0 of the README's Table I row of that setting.
+    the recommended setting (--config metric-scaffold --label-drones lower --epochs 1
+    --noise-split reported), for 600 s: seed 0 of the README's Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
     """
@@ -171,7 +171,8 @@ def demo(
     typer.echo(comparison(results))
     typer.echo(
         f"setting: --config {RECOMMENDED['preset']} --label-drones {RECOMMENDED['label_drones']}"
-        f" --epochs {RECOMMENDED['epochs']} (chosen on tuning seeds 10-11; README, Table I)"
+        f" --epochs {RECOMMENDED['epochs']} --noise-split {RECOMMENDED['noise_split']} (chosen on"
+        " tuning seeds 10-11; README, Table I)"
     )
     typer.echo(
         f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"

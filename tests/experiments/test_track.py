@@ -188,12 +188,14 @@ def test_the_preset_sets_the_episode_models_and_their_updates(tmp_path):
 def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_path):
     case2 = load_scenario("case2")
     recommended = TrackConfig(case2, tmp_path, **RECOMMENDED)
-    assert (recommended.preset, recommended.label_drones, recommended.epochs) == (
-        "metric-scaffold",
-        "lower",
-        1,
-    )
+    assert (
+        recommended.preset,
+        recommended.label_drones,
+        recommended.epochs,
+        recommended.noise_split,
+    ) == ("metric-scaffold", "lower", 1, "reported")
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
+    assert default.noise_split == "adaptive"
