@@ -222,11 +222,14 @@ class TrackConfig:
         """The settings as plain values for ``metrics.json`` (all but ``resume``, which says
         how the episode was run, not what ran), with every setting of the fusion the episode
         runs (``fusion_config``, JSON: its defaults for the scenario, so that an episode flown
-        with other fusion defaults is never taken for this one)."""
+        with other fusion defaults is never taken for this one). ``noise_split`` appears only
+        when it is ``reported``, so that the episodes flown before it existed stay reusable."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["scenario"] = self.scenario.name
         del values["resume"]
         fusion = dataclasses.asdict(self.fusion_config())
+        if self.noise_split == "adaptive":  # as every episode flown before the option (12-05)
+            del values["noise_split"], fusion["noise_split"]
         values["fusion_config"] = json.dumps(fusion, sort_keys=True)
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 

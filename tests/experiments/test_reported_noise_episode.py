@@ -78,3 +78,16 @@ def test_reported_noise_needs_the_robust_fusion(tmp_path):
         )
     with pytest.raises(ValueError, match="--noise-split"):
         TrackConfig(scenario=load_scenario("case2"), noise_split="oracle", out=tmp_path)
+
+
+def test_episodes_flown_before_the_option_keep_their_settings(tmp_path):
+    # An adaptive episode's settings are those written before --noise-split existed, so
+    # table1 and --resume still reuse its results; a reported one's name the split.
+    adaptive = TrackConfig(scenario=load_scenario("case2"), out=tmp_path).settings()
+    assert "noise_split" not in adaptive
+    assert "noise_split" not in json.loads(adaptive["fusion_config"])
+    reported = TrackConfig(
+        scenario=load_scenario("case2"), noise_split="reported", out=tmp_path
+    ).settings()
+    assert reported["noise_split"] == "reported"
+    assert json.loads(reported["fusion_config"])["noise_split"] == "reported"
