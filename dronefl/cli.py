@@ -984,6 +984,14 @@ def drone(
     data_dir: Annotated[Path, typer.Option(help="The drone's disk.")] = Path("runs/deploy/drone"),
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
+    report_noise: Annotated[
+        bool,
+        typer.Option(
+            "--report-noise",
+            help="Also send the drone's own noise estimate with its predictions (for the "
+            "cloud's --noise-split reported).",
+        ),
+    ] = False,
 ) -> None:
     """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
     controls down over Zenoh, and a Flower SuperNode that trains on that disk.
@@ -1004,6 +1012,7 @@ def drone(
             runtime_port,
             tls_dir,
             start_timeout,
+            report_noise=report_noise,
         )
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
@@ -1031,6 +1040,7 @@ def cloud(
     tls_dir: TlsDirOption = "",
     label_drones: LabelDronesOption = "all",
     deshrink_labels: DeshrinkOption = False,
+    noise_split: NoiseSplitOption = "adaptive",
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1068,6 +1078,7 @@ def cloud(
             label_drones=label_drones,
             deshrink_labels=deshrink_labels,
             preset=preset,
+            noise_split=noise_split,
         )
         fl = closed_loop_settings(
             preset,
@@ -1113,6 +1124,7 @@ def deploy_up(
     ),
     label_drones: LabelDronesOption = "all",
     deshrink_labels: DeshrinkOption = False,
+    noise_split: NoiseSplitOption = "adaptive",
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1121,7 +1133,7 @@ def deploy_up(
     round (SCAFFOLD's control variates included) follow the --config.
 
     Example: dronefl deploy up --scenario case2 --duration 600 --fl-period 100 --config
-    metric-scaffold --label-drones lower --epochs 1 --out runs/deploy
+    metric-scaffold --label-drones lower --epochs 1 --noise-split reported --out runs/deploy
     """
     from dronefl.deploy.launcher import DeployConfig, run_deploy
 
@@ -1147,6 +1159,7 @@ def deploy_up(
             restart_drones=restart_drones,
             label_drones=label_drones,
             deshrink_labels=deshrink_labels,
+            noise_split=noise_split,
         )
         metrics = run_deploy(config)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)

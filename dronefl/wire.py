@@ -19,7 +19,8 @@ saturated at the edge (the cloud's gate rejects such an outlier anyway).
 
     u8 version | u8 drone_id | u32 step | f32 ax (m/s^2) | f32 ay (m/s^2)
 
-``NoiseReportMessage`` (drone -> cloud, only with the fusion's ``noise_split = reported``),
+``NoiseReportMessage`` (drone -> cloud, only with the fusion's ``noise_split = reported``;
+in the deployment it follows the prediction message in the same payload, :func:`split_uplink`),
 ``7 + 7 n`` bytes for ``n`` targets: the drone's own estimate of each prediction's error
 (:mod:`dronefl.tracking.reports`) as half floats (3 significant digits, up to 65504 m²)::
 
@@ -179,6 +180,20 @@ class NoiseReportMessage:
             raise WireError("noise report with a non-finite or negative variance")
         noise = np.stack([values[:, [0, 1]], values[:, [1, 2]]], axis=1)  # (n, 2, 2)
         return cls(drone_id, step, target_ids, noise)
+
+
+def split_uplink(data: bytes) -> tuple[bytes, bytes]:
+    """A drone's per-step uplink as ``(prediction message, noise report)``: a drone that
+    reports its noise sends the :class:`NoiseReportMessage` right after the
+    :class:`PredictionMessage` in one payload (the report is ``b""`` when there is none).
+    The prediction message's length is read from its header; a payload too short for one is
+    returned whole, for :meth:`PredictionMessage.decode` to refuse."""
+    data = bytes(data)
+    if len(data) < _PRED_HEAD.size:
+        return data, b""
+    count = _PRED_HEAD.unpack_from(data)[4]
+    end = _PRED_HEAD.size + count * _PRED_ITEM.size
+    return data[:end], data[end:]
 
 
 def raw_inputs_message(

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from logging import INFO, WARNING
 from pathlib import Path
 
@@ -59,8 +59,15 @@ from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DroneFLPlanner
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
+from dronefl.tracking.fusion import NOISE_SPLITS
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
-from dronefl.wire import ControlMessage, PredictionMessage, WireError
+from dronefl.wire import (
+    ControlMessage,
+    NoiseReportMessage,
+    PredictionMessage,
+    WireError,
+    split_uplink,
+)
 
 #: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
 SUPERNODE_JOIN_S = 30.0
@@ -81,7 +88,9 @@ class CloudSettings:
     --label-drones``); ``deshrink_labels`` pushes each drone's labels away from it by the pull
     its predictions show (as ``dronefl track --deshrink-labels``); ``preset`` the training
     setting of the rounds (a key of :data:`~dronefl.fl.records.PRESETS`, as ``dronefl track
-    --config``; the rounds' own settings travel as :class:`~dronefl.fl.records.FlSettings`).
+    --config``; the rounds' own settings travel as :class:`~dronefl.fl.records.FlSettings`);
+    ``noise_split`` the fusion's (as ``dronefl track --noise-split``: ``reported`` uses the
+    noise reports that follow each drone's predictions).
     """
 
     scenario: str
@@ -99,10 +108,15 @@ class CloudSettings:
     label_drones: str = "all"
     deshrink_labels: bool = False
     preset: str = "ours"
+    noise_split: str = "adaptive"
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
+        if self.noise_split not in NOISE_SPLITS:
+            raise ValueError(
+                f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
+            )
         if self.method not in DEPLOY_METHODS:
             raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
         if self.label_drones not in LABEL_DRONES:
@@ -158,6 +172,7 @@ class _Inbox:
 
     telemetry: dict[int, TelemetryMessage] = field(default_factory=dict)
     predictions: dict[int, dict[int, PredictionMessage]] = field(default_factory=dict)
+    reports: dict[int, dict[int, NoiseReportMessage]] = field(default_factory=dict)
     late: dict[int, int] = field(default_factory=dict)  # drone -> predictions after deadline
     changed: threading.Condition = field(default_factory=threading.Condition)
 
@@ -173,7 +188,8 @@ class CloudEpisode:
         s = self.scenario
         self.n_steps = int(round(settings.duration * s.rate_hz))
         self.fl_every = int(round(settings.fl_period * s.rate_hz))
-        self.fuser = Fuser(s.target_ids, s.drone_ids, fusion_config(s))
+        fusion = replace(fusion_config(s), noise_split=settings.noise_split)
+        self.fuser = Fuser(s.target_ids, s.drone_ids, fusion)
         self.planner = DroneFLPlanner.from_scenario(s)
         self.counter = ByteCounter()
         self.inbox = _Inbox()
@@ -199,6 +215,7 @@ class CloudEpisode:
         self.fl_steps: list[int] = []
         self.planner_seconds = 0.0
         self.current = 0
+        self._reports: dict[int, NoiseReportMessage] = {}  # the step's, by drone
         self.column = {t: j for j, t in enumerate(s.target_ids)}
 
     # -- Zenoh callbacks -------------------------------------------------------------------
@@ -212,17 +229,23 @@ class CloudEpisode:
 
     def _on_prediction(self, key: str, payload: bytes) -> None:
         drone_id = int(key.split("/")[2])
+        predictions, report = split_uplink(payload)
         try:
-            message = PredictionMessage.decode(payload)
+            message = PredictionMessage.decode(predictions)
+            noise = NoiseReportMessage.decode(report) if report else None
         except WireError as exc:
             log(WARNING, "drone %d: undecodable prediction message (%s)", drone_id, exc)
             return
         with self.inbox.changed:
-            self.counter.add(drone_id, "up", "predictions", len(payload))
+            self.counter.add(drone_id, "up", "predictions", len(predictions))
+            if report:
+                self.counter.add(drone_id, "up", "noise_reports", len(report))
             if message.drone_id != drone_id or message.step < self.current:
                 self.inbox.late[drone_id] = self.inbox.late.get(drone_id, 0) + 1
                 return
             self.inbox.predictions.setdefault(message.step, {})[drone_id] = message
+            if noise is not None:
+                self.inbox.reports.setdefault(message.step, {})[drone_id] = noise
             self.inbox.changed.notify_all()
 
     # -- the episode -----------------------------------------------------------------------
@@ -305,6 +328,7 @@ class CloudEpisode:
                     break
                 self.inbox.changed.wait(left)
             self.current = k + 1  # anything for step k from now on is late
+            self._reports = self.inbox.reports.pop(k, {})
             return self.inbox.predictions.pop(k, {})
 
     def _step(self, k: int) -> None:
@@ -320,13 +344,17 @@ class CloudEpisode:
             if message is None:
                 self.silent[k, i] = True
                 continue
+            report = self._reports.get(drone_id)
+            noise = dict(zip(report.target_ids, report.noise, strict=True)) if report else {}
             for target_id, position in zip(
                 message.target_ids, message.positions[:, 0], strict=True
             ):
                 if target_id not in self.column:
                     continue
                 self.prediction[k, i, self.column[target_id]] = position
-                measurements.append(PositionMeasurement(drone_id, target_id, position))
+                measurements.append(
+                    PositionMeasurement(drone_id, target_id, position, noise.get(target_id))
+                )
         dt = self.scenario.dt
         tracks = self.fuser.update(telemetry.t + dt, measurements)
         for target_id, track in tracks.items():

@@ -54,7 +54,9 @@ from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
-from dronefl.wire import PredictionMessage
+from dronefl.sim.camera import PinholeCamera
+from dronefl.tracking.reports import ForecastResidual, box_ground_positions
+from dronefl.wire import NoiseReportMessage, PredictionMessage
 
 #: How the SuperNode logs the node id the SuperLink assigned it.
 _NODE_ID = re.compile(r"SuperNode ID: (\d+)")
@@ -68,7 +70,9 @@ class DroneSettings:
     the SuperLink's ``host:port``; ``runtime_port`` the port of this SuperNode's local
     ClientApp API; ``model`` the pretrained weights; ``data_dir`` the drone's disk;
     ``tls_dir`` the certificate folder (empty: no TLS; else also SuperNode authentication
-    with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink.
+    with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink;
+    ``report_noise``: also send the drone's own noise estimate with its predictions
+    (:mod:`dronefl.tracking.reports`; the cloud's ``--noise-split reported`` uses it).
     """
 
     scenario: str
@@ -81,6 +85,7 @@ class DroneSettings:
     tls_dir: str = ""
     start_timeout: float = 120.0
     past_steps: int = 10
+    report_noise: bool = False
 
     @property
     def link(self) -> LinkConfig:
@@ -105,6 +110,10 @@ class DroneProcess:
         self.lock = threading.Lock()  # the record and the predictor
         self.sensed: queue.Queue[bytes] = queue.Queue()
         self.log_path = Path(settings.data_dir) / f"drone_{spec.id}.npz"
+        self.camera = PinholeCamera.from_spec(scenario.camera)
+        self.ground_z = scenario.vehicle.height / 2
+        n = len(scenario.target_ids)
+        self.reporter = ForecastResidual(n) if settings.report_noise else None
 
     def flush(self, payload: bytes) -> bytes:
         """Write the onboard record and the round's pseudo-labels on their steps to disk."""
@@ -139,11 +148,14 @@ class DroneProcess:
         return b"ok"
 
     def predict(self, payload: bytes) -> bytes:
-        """Record one step's sensors and return the prediction message to publish."""
+        """Record one step's sensors and return the prediction message to publish (followed
+        by the noise report, :func:`~dronefl.wire.split_uplink`, when the drone reports)."""
         sense = SenseMessage.decode(payload)
         drone_id = self.settings.drone_id
         with self.lock:
             self.record.append(sense.odometry, sense.detections)
+            if self.reporter is not None:
+                self._observe()
             window = self.record.window(self.settings.past_steps)
             if window is None:
                 return PredictionMessage(drone_id, sense.step, (), np.zeros((0, 1, 2))).encode()
@@ -151,7 +163,33 @@ class DroneProcess:
         assigned = self.record.target_ids[self.record.assigned]
         seen = np.isfinite(predicted).all(axis=1)
         ids = tuple(int(t) for t in assigned[seen])
-        return PredictionMessage(drone_id, sense.step, ids, predicted[seen][:, None]).encode()
+        message = PredictionMessage(drone_id, sense.step, ids, predicted[seen][:, None]).encode()
+        if self.reporter is None:
+            return message
+        return message + self._report(sense.step, message)
+
+    def _observe(self) -> None:
+        """Compare the last predictions with the detections just stored (as the closed
+        loop's drones do, :meth:`dronefl.experiments.track.ClosedLoop._observe`)."""
+        k = self.record.steps - 1
+        boxes = np.where(self.record.detected[k, :, None], self.record.boxes[k], np.nan)
+        self.reporter.observe(
+            box_ground_positions(self.camera, boxes, self.record.odometry[k], self.ground_z)
+        )
+
+    def _report(self, step: int, message: bytes) -> bytes:
+        """The noise report of the predictions in ``message`` (the positions as sent, in
+        centimetres, which the residual of the next step compares)."""
+        sent = PredictionMessage.decode(message)
+        column = {int(t): j for j, t in enumerate(self.record.target_ids)}
+        noise = self.reporter.noise()
+        predicted = np.full((len(column), 2), np.nan)
+        for target_id, position in zip(sent.target_ids, sent.positions[:, 0], strict=True):
+            predicted[column[target_id]] = position
+        self.reporter.predicted(predicted)
+        known = tuple(t for t in sent.target_ids if np.isfinite(noise[column[t]]).all())
+        rows = noise[[column[t] for t in known]].reshape(-1, 2, 2)
+        return NoiseReportMessage(self.settings.drone_id, step, known, rows).encode()
 
 
 def load_predictor(path: Path, past_steps: int) -> TrajectoryPredictor:

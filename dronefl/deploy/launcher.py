@@ -30,6 +30,7 @@ from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
 from dronefl.fl.records import PRESETS
+from dronefl.tracking.fusion import NOISE_SPLITS
 from dronefl.tracking.labels import LABEL_DRONES
 
 HOST = "127.0.0.1"
@@ -59,8 +60,13 @@ class DeployConfig:
     restart_drones: bool = False
     label_drones: str = "all"
     deshrink_labels: bool = False
+    noise_split: str = "adaptive"
 
     def __post_init__(self) -> None:
+        if self.noise_split not in NOISE_SPLITS:
+            raise ValueError(
+                f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
+            )
         if self.preset not in PRESETS:
             raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         for name in ("epochs", "lr"):  # unset: the preset's, as `dronefl track`
@@ -202,6 +208,7 @@ def _commands(
             "--stride", str(config.stride),
             "--label-drones", config.label_drones,
             *(["--deshrink-labels"] if config.deshrink_labels else []),
+            "--noise-split", config.noise_split,
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,
@@ -228,6 +235,7 @@ def _commands(
             "--runtime-port", str(ports[f"drone {d} SuperNode"]),
             "--model", str(model),
             "--data-dir", str(out / "drones" / f"drone-{d}"),
+            *(["--report-noise"] if config.noise_split == "reported" else []),
         ]  # fmt: skip
     return commands
 
