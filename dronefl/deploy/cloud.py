@@ -518,7 +518,7 @@ class CloudEpisode:
             TrafficCount(d, way, kind, n)
             for d in self.scenario.drone_ids
             for way in DIRECTIONS
-            for kind in ("predictions", "control", "labels", "weights")
+            for kind in ("predictions", "noise_reports", "control", "labels", "weights")
             if (n := self.counter.total(d, way, kind))
         )
         CloudLog(
