@@ -6,16 +6,18 @@ measurement ``g`` of where the target is that needs no model. Its forecast resid
 ``e = z_k - g_{k+1}`` has second moment
 
 .. math::
-    E[e e^T] = R_{pred} + R_{proj} - 2\\,\\mathrm{cov}(\\cdot)
+    E[e e^T] = R_{pred} + R_{proj}
 
-the prediction error it wants plus the projection error of one box (a few cm² to a few dm²:
-it grows with the altitude, as the prediction error does). :class:`ForecastResidual` keeps an
+(for errors independent of each other): the prediction error it wants plus the projection
+error of one box (0.03-0.17 m² in Case 3, growing with the altitude as the prediction error
+does). It exists only while the target is detected, so where targets leave the view (Case 2)
+it misses the largest errors. :class:`ForecastResidual` keeps an
 EMA of ``e e^T`` per target, the *reported noise* the drone can send with its predictions.
 
 The cloud cannot get this split from the predictions alone: with two drones on a target the
-residual between them measures only ``R_1 + R_2``. The reports give the ratio (measured on
-Case 3's tuning episodes: they rank the high drone above the low one on every target, where
-the consensus estimate ranks them wrong), the fusion's adaptive ``R`` the scale
+residual between them measures only ``R_1 + R_2`` (the adaptive estimate gives both the same
+share). The reports give the ratio (on Case 3's tuning episodes they rank the high drone above
+the low one on every target), the fusion's adaptive ``R`` the scale
 (:attr:`~dronefl.tracking.FusionConfig.noise_split`).
 """
 
