@@ -215,7 +215,6 @@ class CloudEpisode:
         self.fl_steps: list[int] = []
         self.planner_seconds = 0.0
         self.current = 0
-        self._reports: dict[int, NoiseReportMessage] = {}  # the step's, by drone
         self.column = {t: j for j, t in enumerate(s.target_ids)}
 
     # -- Zenoh callbacks -------------------------------------------------------------------
@@ -318,7 +317,11 @@ class CloudEpisode:
                 self.inbox.changed.wait(0.2)
             return self.inbox.telemetry.pop(k)
 
-    def _wait_predictions(self, k: int) -> dict[int, PredictionMessage]:
+    def _wait_predictions(
+        self, k: int
+    ) -> tuple[dict[int, PredictionMessage], dict[int, NoiseReportMessage]]:
+        """Step ``k``'s prediction messages and noise reports by drone, as they arrived by the
+        deadline."""
         expected = set(self._alive_drones())
         deadline = time.perf_counter() + self.settings.deadline_ms / 1000
         with self.inbox.changed:
@@ -328,8 +331,7 @@ class CloudEpisode:
                     break
                 self.inbox.changed.wait(left)
             self.current = k + 1  # anything for step k from now on is late
-            self._reports = self.inbox.reports.pop(k, {})
-            return self.inbox.predictions.pop(k, {})
+            return self.inbox.predictions.pop(k, {}), self.inbox.reports.pop(k, {})
 
     def _step(self, k: int) -> None:
         telemetry = self._wait_telemetry(k)
@@ -337,14 +339,14 @@ class CloudEpisode:
         row = {d.drone_id: d.position for d in telemetry.drones}
         for i, drone_id in enumerate(self.scenario.drone_ids):
             self.drone_position[k, i] = row.get(drone_id, (np.nan, np.nan))
-        received = self._wait_predictions(k)
+        received, reports = self._wait_predictions(k)
         measurements = []
         for i, drone_id in enumerate(self.scenario.drone_ids):
             message = received.get(drone_id)
             if message is None:
                 self.silent[k, i] = True
                 continue
-            report = self._reports.get(drone_id)
+            report = reports.get(drone_id)
             noise = dict(zip(report.target_ids, report.noise, strict=True)) if report else {}
             for target_id, position in zip(
                 message.target_ids, message.positions[:, 0], strict=True

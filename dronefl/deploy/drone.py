@@ -54,8 +54,7 @@ from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
-from dronefl.sim.camera import PinholeCamera
-from dronefl.tracking.reports import ForecastResidual, box_ground_positions
+from dronefl.tracking.reports import NoiseReporter
 from dronefl.wire import NoiseReportMessage, PredictionMessage
 
 #: How the SuperNode logs the node id the SuperLink assigned it.
@@ -110,10 +109,7 @@ class DroneProcess:
         self.lock = threading.Lock()  # the record and the predictor
         self.sensed: queue.Queue[bytes] = queue.Queue()
         self.log_path = Path(settings.data_dir) / f"drone_{spec.id}.npz"
-        self.camera = PinholeCamera.from_spec(scenario.camera)
-        self.ground_z = scenario.vehicle.height / 2
-        n = len(scenario.target_ids)
-        self.reporter = ForecastResidual(n) if settings.report_noise else None
+        self.reporter = NoiseReporter(scenario) if settings.report_noise else None
 
     def flush(self, payload: bytes) -> bytes:
         """Write the onboard record and the round's pseudo-labels on their steps to disk."""
@@ -155,7 +151,7 @@ class DroneProcess:
         with self.lock:
             self.record.append(sense.odometry, sense.detections)
             if self.reporter is not None:
-                self._observe()
+                self.reporter.observe(self.record)
             window = self.record.window(self.settings.past_steps)
             if window is None:
                 return PredictionMessage(drone_id, sense.step, (), np.zeros((0, 1, 2))).encode()
@@ -168,27 +164,11 @@ class DroneProcess:
             return message
         return message + self._report(sense.step, message)
 
-    def _observe(self) -> None:
-        """Compare the last predictions with the detections just stored (as the closed
-        loop's drones do, :meth:`dronefl.experiments.track.ClosedLoop._observe`)."""
-        k = self.record.steps - 1
-        boxes = np.where(self.record.detected[k, :, None], self.record.boxes[k], np.nan)
-        self.reporter.observe(
-            box_ground_positions(self.camera, boxes, self.record.odometry[k], self.ground_z)
-        )
-
     def _report(self, step: int, message: bytes) -> bytes:
         """The noise report of the predictions in ``message`` (the positions as sent, in
         centimetres, which the residual of the next step compares)."""
         sent = PredictionMessage.decode(message)
-        column = {int(t): j for j, t in enumerate(self.record.target_ids)}
-        noise = self.reporter.noise()
-        predicted = np.full((len(column), 2), np.nan)
-        for target_id, position in zip(sent.target_ids, sent.positions[:, 0], strict=True):
-            predicted[column[target_id]] = position
-        self.reporter.predicted(predicted)
-        known = tuple(t for t in sent.target_ids if np.isfinite(noise[column[t]]).all())
-        rows = noise[[column[t] for t in known]].reshape(-1, 2, 2)
+        known, rows = self.reporter.report(sent.target_ids, sent.positions[:, 0])
         return NoiseReportMessage(self.settings.drone_id, step, known, rows).encode()
 
 

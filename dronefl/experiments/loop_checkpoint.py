@@ -43,7 +43,7 @@ from dronefl.io import atomic_write_bytes
 from dronefl.models.online import OnboardRecord
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser
-from dronefl.tracking.reports import ForecastResidual
+from dronefl.tracking.reports import NoiseReporter
 
 #: The checkpoint's file name in the episode folder.
 CHECKPOINT_NAME = "checkpoint.pkl"
@@ -80,7 +80,7 @@ class LoopCheckpoint:
     planner_seconds: float
     fl_seconds: float
     wall_seconds: float
-    reporters: list[ForecastResidual] | None = None
+    reporters: list[NoiseReporter] | None = None
     format: str = CHECKPOINT_FORMAT
 
 

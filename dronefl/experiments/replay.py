@@ -24,10 +24,13 @@ import numpy as np
 
 from dronefl.config import Scenario, load_scenario
 from dronefl.io import atomic_write_json, atomic_write_text
-from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
-from dronefl.tracking.reports import box_ground_positions, forecast_residual_reports
+from dronefl.tracking.reports import (
+    forecast_residual_reports,
+    ground_plane,
+    record_ground_positions,
+)
 
 
 class EpisodeError(ValueError):
@@ -221,16 +224,11 @@ def drone_reports(episode: Episode) -> np.ndarray:
         raise EpisodeError(f"{path}: unreadable checkpoint ({type(exc).__name__})") from None
     if not isinstance(checkpoint, LoopCheckpoint):
         raise EpisodeError(f"{path}: not an episode checkpoint")
-    records = checkpoint.records
-    scenario = episode.scenario
-    camera = PinholeCamera.from_spec(scenario.camera)
-    detected = []
-    for record in records:
-        n = record.steps
-        boxes = np.where(record.detected[:n, :, None], record.boxes[:n], np.nan)
-        detected.append(
-            box_ground_positions(camera, boxes, record.odometry[:n], scenario.vehicle.height / 2)
-        )
+    camera, ground_z = ground_plane(episode.scenario)
+    detected = [
+        record_ground_positions(camera, record, ground_z, slice(0, record.steps))
+        for record in checkpoint.records
+    ]
     if any(len(d) < len(episode.prediction) for d in detected):
         raise EpisodeError(f"{path}: its records are shorter than episode.npz")
     return forecast_residual_reports(episode.prediction, detected)

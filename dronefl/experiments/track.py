@@ -84,7 +84,7 @@ from dronefl.tracking import (
 )
 from dronefl.tracking.fusion import NOISE_SPLITS
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
-from dronefl.tracking.reports import ForecastResidual, box_ground_positions
+from dronefl.tracking.reports import NoiseReporter
 from dronefl.wire import ControlMessage, NoiseReportMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -369,9 +369,9 @@ class ClosedLoop:
         self.planner_seconds = 0.0
         self.rounds: list[ClosedLoopRound] = []
         self.fl_seconds = 0.0
-        self.reporters: list[ForecastResidual] | None = None
+        self.reporters: list[NoiseReporter] | None = None
         if config.noise_split == "reported":
-            self.reporters = [ForecastResidual(len(scenario.target_ids)) for _ in self.records]
+            self.reporters = [NoiseReporter(scenario) for _ in self.records]
         if saved is not None:
             self._restore(saved)
 
@@ -419,7 +419,7 @@ class ClosedLoop:
             detections = self.detector.detect(view)
             record.append(odometry, detections)
             if self.reporters is not None:
-                self._observe(i, record)
+                self.reporters[i].observe(record)
             if self.frames_in:
                 self.learner.receive(i, self.detector.last_frame)
             if self.learner.cloud_predicts:
@@ -513,16 +513,6 @@ class ClosedLoop:
             measurements.append(PositionMeasurement(record.drone_id, target_id, position, report))
         return measurements
 
-    def _observe(self, i: int, record: OnboardRecord) -> None:
-        """Drone ``i`` compares its last predictions with the detections it just stored,
-        back-projected onto the ground at half the vehicles' height."""
-        k = record.steps - 1
-        boxes = np.where(record.detected[k, :, None], record.boxes[k], np.nan)
-        ground = box_ground_positions(
-            self.world.camera, boxes, record.odometry[k], self.scenario.vehicle.height / 2
-        )
-        self.reporters[i].observe(ground)
-
     def _reports(
         self, k: int, i: int, drone_id: int, ids: tuple[int, ...], positions: np.ndarray
     ) -> list[np.ndarray | None]:
@@ -531,14 +521,7 @@ class ClosedLoop:
         residual yet); the drone keeps the predictions for its next residual."""
         if self.reporters is None:
             return [None] * len(ids)
-        reporter = self.reporters[i]
-        noise = reporter.noise()
-        predicted = np.full((len(self.scenario.target_ids), 2), np.nan)
-        for target_id, position in zip(ids, positions, strict=True):
-            predicted[self.column[target_id]] = position
-        reporter.predicted(predicted)
-        known = tuple(t for t in ids if np.isfinite(noise[self.column[t]]).all())
-        sent = noise[[self.column[t] for t in known]].reshape(-1, 2, 2)
+        known, sent = self.reporters[i].report(ids, positions)
         if not self.learner.cloud_predicts:  # the drone sends them beside its predictions
             data = NoiseReportMessage(drone_id, k, known, sent).encode()
             self.counter.add(drone_id, "up", "noise_reports", len(data))

@@ -24,10 +24,15 @@ the low one on every target), the fusion's adaptive ``R`` the scale
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from dronefl.sim.camera import PinholeCamera
+
+if TYPE_CHECKING:
+    from dronefl.config import Scenario
+    from dronefl.models.online import OnboardRecord
 
 #: EMA rate per detected step of the reported noise (the fusion's adaptation rate).
 REPORT_RATE = 0.02
@@ -49,6 +54,22 @@ def box_ground_positions(
         pose = odometry[index]
         out[index] = camera.ground_point(boxes[index][:, :2], pose[:3], float(pose[8]), ground_z)
     return out
+
+
+def ground_plane(scenario: Scenario) -> tuple[PinholeCamera, float]:
+    """The drones' camera and the height (m) onto which they back-project box centres: half
+    the vehicle's height."""
+    return PinholeCamera.from_spec(scenario.camera), scenario.vehicle.height / 2
+
+
+def record_ground_positions(
+    camera: PinholeCamera, record: OnboardRecord, ground_z: float, rows: int | slice
+) -> np.ndarray:
+    """The detections of an onboard record's ``rows`` back-projected onto the plane
+    ``z = ground_z`` m (:func:`box_ground_positions`), ``(..., n, 2)`` m, NaN where a target
+    was not detected."""
+    boxes = np.where(record.detected[rows, ..., None], record.boxes[rows], np.nan)
+    return box_ground_positions(camera, boxes, record.odometry[rows], ground_z)
 
 
 class ForecastResidual:
@@ -85,6 +106,40 @@ class ForecastResidual:
     def noise(self) -> np.ndarray:
         """The reported noise of every target, ``(n, 2, 2)`` m² (a copy)."""
         return self._s.copy()
+
+
+class NoiseReporter:
+    """What a drone runs to report its noise, fed from its onboard record: the closed loop's
+    drones and the deployed drone (``dronefl drone --report-noise``) alike.
+
+    Each step: :meth:`observe` once the step's detections are in the record, then
+    :meth:`report` with the predictions it sends (the positions as they travel).
+    """
+
+    def __init__(self, scenario: Scenario, rate: float = REPORT_RATE) -> None:
+        self.camera, self.ground_z = ground_plane(scenario)
+        self.column = {int(t): j for j, t in enumerate(scenario.target_ids)}
+        self.residual = ForecastResidual(len(self.column), rate)
+
+    def observe(self, record: OnboardRecord) -> None:
+        """Compare the last predictions with the detections ``record`` has just stored."""
+        ground = record_ground_positions(self.camera, record, self.ground_z, record.steps - 1)
+        self.residual.observe(ground)
+
+    def report(
+        self, target_ids: Sequence[int], positions: np.ndarray
+    ) -> tuple[tuple[int, ...], np.ndarray]:
+        """The noise to send with the predictions ``positions`` ``(n, 2)`` m of
+        ``target_ids``: the targets that have an estimate and their ``(n', 2, 2)`` m²
+        (residuals of the earlier predictions only); keeps the predictions for the next
+        residual."""
+        noise = self.residual.noise()
+        predicted = np.full((len(self.column), 2), np.nan)
+        for target_id, position in zip(target_ids, positions, strict=True):
+            predicted[self.column[target_id]] = position
+        self.residual.predicted(predicted)
+        known = tuple(t for t in target_ids if np.isfinite(noise[self.column[t]]).all())
+        return known, noise[[self.column[t] for t in known]].reshape(-1, 2, 2)
 
 
 def forecast_residual_reports(
