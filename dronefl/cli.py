@@ -148,7 +148,8 @@ def demo(
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones lower --epochs 1
-    --noise-split reported), for 600 s: seed 0 of the README's Table I row of that setting.
+    --noise-split reported --correct-bias), for 600 s: seed 0 of the README's Table I row of
+    that setting.
 
     Example: dronefl demo --out runs/demo
     """
@@ -171,8 +172,9 @@ def demo(
     typer.echo(comparison(results))
     typer.echo(
         f"setting: --config {RECOMMENDED['preset']} --label-drones {RECOMMENDED['label_drones']}"
-        f" --epochs {RECOMMENDED['epochs']} --noise-split {RECOMMENDED['noise_split']} (chosen on"
-        " tuning seeds 10-11; README, Table I)"
+        f" --epochs {RECOMMENDED['epochs']} --noise-split {RECOMMENDED['noise_split']}"
+        f"{' --correct-bias' if RECOMMENDED['correct_bias'] else ''} (chosen on tuning seeds"
+        " 10-11; README, Table I)"
     )
     typer.echo(
         f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"
@@ -567,6 +569,14 @@ NoiseSplitOption = Annotated[
         "robust fusion shares two drones' adapted R.",
     ),
 ]
+CorrectBiasOption = Annotated[
+    bool,
+    typer.Option(
+        "--correct-bias",
+        help="Each drone subtracts the running mean of its forecast residual (prediction "
+        "against its next detection, back-projected) from the predictions it sends.",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -623,6 +633,7 @@ def track(
     deshrink_labels: DeshrinkOption = False,
     fusion: FusionOption = "robust",
     noise_split: NoiseSplitOption = "adaptive",
+    correct_bias: CorrectBiasOption = False,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
@@ -661,6 +672,7 @@ def track(
         deshrink_labels=deshrink_labels,
         fusion=fusion,
         noise_split=noise_split,
+        correct_bias=correct_bias,
         past_steps=past_steps,
         preset=preset,
         epochs=epochs,
@@ -724,6 +736,7 @@ def table1(
     deshrink_labels: DeshrinkOption = False,
     fusion: FusionOption = "robust",
     noise_split: NoiseSplitOption = "adaptive",
+    correct_bias: CorrectBiasOption = False,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -750,7 +763,7 @@ def table1(
     base = _track_config(
         scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period, labels=labels,
         label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
-        noise_split=noise_split, preset=preset, epochs=epochs, lr=lr,
+        noise_split=noise_split, correct_bias=correct_bias, preset=preset, epochs=epochs, lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
@@ -855,6 +868,13 @@ def replay(
             "rebuilt from the episode's checkpoint.pkl)."
         ),
     ] = "adaptive",
+    correct_bias: Annotated[
+        bool,
+        typer.Option(
+            help="Correct each drone's predictions by the mean of its forecast residual, as "
+            "`track --correct-bias` does in flight (rebuilt from checkpoint.pkl)."
+        ),
+    ] = False,
     labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
     max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
@@ -890,7 +910,7 @@ def replay(
             fading=fading,
             noise_split=noise_split,
         )
-        result = run(recorded, config, labels=labels, max_std=max_std)
+        result = run(recorded, config, labels=labels, max_std=max_std, correct_bias=correct_bias)
     except (EpisodeError, ValueError) as exc:
         raise fail(str(exc)) from None
     typer.echo(format_result(result))
@@ -992,6 +1012,7 @@ def drone(
             "cloud's --noise-split reported).",
         ),
     ] = False,
+    correct_bias: CorrectBiasOption = False,
 ) -> None:
     """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
     controls down over Zenoh, and a Flower SuperNode that trains on that disk.
@@ -1013,6 +1034,7 @@ def drone(
             tls_dir,
             start_timeout,
             report_noise=report_noise,
+            correct_bias=correct_bias,
         )
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
@@ -1125,6 +1147,7 @@ def deploy_up(
     label_drones: LabelDronesOption = "all",
     deshrink_labels: DeshrinkOption = False,
     noise_split: NoiseSplitOption = "adaptive",
+    correct_bias: CorrectBiasOption = False,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1160,6 +1183,7 @@ def deploy_up(
             label_drones=label_drones,
             deshrink_labels=deshrink_labels,
             noise_split=noise_split,
+            correct_bias=correct_bias,
         )
         metrics = run_deploy(config)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)

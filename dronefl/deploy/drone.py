@@ -71,7 +71,9 @@ class DroneSettings:
     ``tls_dir`` the certificate folder (empty: no TLS; else also SuperNode authentication
     with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink;
     ``report_noise``: also send the drone's own noise estimate with its predictions
-    (:mod:`dronefl.tracking.reports`; the cloud's ``--noise-split reported`` uses it).
+    (:mod:`dronefl.tracking.reports`; the cloud's ``--noise-split reported`` uses it);
+    ``correct_bias``: subtract the running mean of its forecast residual from the predictions
+    it sends (as ``dronefl track --correct-bias``).
     """
 
     scenario: str
@@ -85,6 +87,7 @@ class DroneSettings:
     start_timeout: float = 120.0
     past_steps: int = 10
     report_noise: bool = False
+    correct_bias: bool = False
 
     @property
     def link(self) -> LinkConfig:
@@ -109,7 +112,8 @@ class DroneProcess:
         self.lock = threading.Lock()  # the record and the predictor
         self.sensed: queue.Queue[bytes] = queue.Queue()
         self.log_path = Path(settings.data_dir) / f"drone_{spec.id}.npz"
-        self.reporter = NoiseReporter(scenario) if settings.report_noise else None
+        wanted = settings.report_noise or settings.correct_bias
+        self.reporter = NoiseReporter(scenario) if wanted else None
 
     def flush(self, payload: bytes) -> bytes:
         """Write the onboard record and the round's pseudo-labels on their steps to disk."""
@@ -137,6 +141,8 @@ class DroneProcess:
             return b"model on disk is of another architecture than the one flown"
         with self.lock:
             self.predictor.load_state(saved.state)
+            if self.settings.correct_bias:  # the new model's bias, not the old one's
+                self.reporter.rebase(self.record, self.predictor, self.settings.past_steps)
         print(
             f"drone {self.settings.drone_id}: model of round {saved.server_round} loaded",
             flush=True,
@@ -158,11 +164,14 @@ class DroneProcess:
             predicted = self.predictor.predict(*window)[:, 0]  # (n_assigned, 2) m
         assigned = self.record.target_ids[self.record.assigned]
         seen = np.isfinite(predicted).all(axis=1)
-        ids = tuple(int(t) for t in assigned[seen])
-        message = PredictionMessage(drone_id, sense.step, ids, predicted[seen][:, None]).encode()
+        ids, positions = tuple(int(t) for t in assigned[seen]), predicted[seen]
+        if self.settings.correct_bias:
+            positions = self.reporter.correct(ids, positions)
+        message = PredictionMessage(drone_id, sense.step, ids, positions[:, None]).encode()
         if self.reporter is None:
             return message
-        return message + self._report(sense.step, message)
+        report = self._report(sense.step, message)
+        return message + report if self.settings.report_noise else message
 
     def _report(self, step: int, message: bytes) -> bytes:
         """The noise report of the predictions in ``message`` (the positions as sent, in

@@ -61,6 +61,7 @@ class DeployConfig:
     label_drones: str = "all"
     deshrink_labels: bool = False
     noise_split: str = "adaptive"
+    correct_bias: bool = False
 
     def __post_init__(self) -> None:
         if self.noise_split not in NOISE_SPLITS:
@@ -236,6 +237,7 @@ def _commands(
             "--model", str(model),
             "--data-dir", str(out / "drones" / f"drone-{d}"),
             *(["--report-noise"] if config.noise_split == "reported" else []),
+            *(["--correct-bias"] if config.correct_bias else []),
         ]  # fmt: skip
     return commands
 

@@ -10,7 +10,9 @@ recorded episode's fusion, so a replay changes the estimates, not the flight.
 
 With ``noise_split = "reported"`` the drones' own noise reports are rebuilt from their onboard
 records in the episode's ``checkpoint.pkl`` (:func:`drone_reports`): the boxes and odometry
-each drone stored, the same data from which it would have computed them in flight.
+each drone stored, the same data from which it would have computed them in flight; with
+``correct_bias`` the predictions are first corrected as the drones would have corrected them
+(:mod:`dronefl.tracking.reports`), which needs an episode flown without the correction.
 """
 
 from __future__ import annotations
@@ -43,7 +45,9 @@ class Episode:
 
     ``prediction`` ``(K, M, N, 2)`` m: drone ``i``'s prediction at step ``k`` of target ``j``'s
     position at ``k + 1`` (NaN: none); ``target_position`` ``(K+1, N, 2)`` m: the truth;
-    ``track_position`` ``(K+1, N, 2)`` m: the fused tracks as flown; ``t`` ``(K+1,)`` s.
+    ``track_position`` ``(K+1, N, 2)`` m: the fused tracks as flown; ``t`` ``(K+1,)`` s;
+    ``bias_corrected``: the drones corrected their predictions' bias in flight (the
+    predictions are those they sent).
     """
 
     path: Path
@@ -52,6 +56,7 @@ class Episode:
     target_position: np.ndarray
     track_position: np.ndarray
     t: np.ndarray
+    bias_corrected: bool = False
 
 
 def load_episode(folder: str | Path) -> Episode:
@@ -82,7 +87,7 @@ def load_episode(folder: str | Path) -> Episode:
     for key, shape in expected.items():
         if arrays[key].shape != shape:
             raise EpisodeError(f"{npz}: {key} has shape {arrays[key].shape}, expected {shape}")
-    return Episode(folder, scenario, **arrays)
+    return Episode(folder, scenario, **arrays, bias_corrected=bool(config.get("correct_bias")))
 
 
 _ARRAYS = ("prediction", "target_position", "track_position", "t")
@@ -172,7 +177,8 @@ class ReplayResult:
     ``label_mse`` (m^2, mean over cells), ``measurements`` fused or gated, ``rejections``
     (gated out) and ``resets``; ``by_views``: the fused track split by how many drones
     predicted the target at the step before (:data:`VIEWS`; ``"0"`` is coasting on the motion
-    model alone), each :class:`ViewsError`."""
+    model alone), each :class:`ViewsError`; ``correct_bias``: the drones' predictions were
+    bias-corrected before the fusion."""
 
     episode: str
     scenario: str
@@ -187,6 +193,7 @@ class ReplayResult:
     rejections: int
     resets: int
     by_views: dict[str, ViewsError]
+    correct_bias: bool = False
 
     @property
     def gated_fraction(self) -> float:
@@ -207,8 +214,9 @@ def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
         raise ValueError(f"fusion settings: {exc}") from None
 
 
-def drone_reports(episode: Episode) -> np.ndarray:
-    """The noise each drone would have sent with each prediction
+def drone_reports(episode: Episode, correct_bias: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The predictions each drone would have sent, ``(K, M, N, 2)`` m (less its bias estimate
+    with ``correct_bias``), and the noise it would have sent with each
     (:mod:`dronefl.tracking.reports`), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
     and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
     plane at half the vehicle's height."""
@@ -231,7 +239,7 @@ def drone_reports(episode: Episode) -> np.ndarray:
     ]
     if any(len(d) < len(episode.prediction) for d in detected):
         raise EpisodeError(f"{path}: its records are shorter than episode.npz")
-    return forecast_residual_reports(episode.prediction, detected)
+    return forecast_residual_reports(episode.prediction, detected, correct_bias=correct_bias)
 
 
 def replay(
@@ -239,10 +247,23 @@ def replay(
     config: FusionConfig,
     labels: str = "smoothed",
     max_std: float = DEFAULT_MAX_STD,
+    correct_bias: bool = False,
 ) -> ReplayResult:
-    """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``."""
+    """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``; with
+    ``correct_bias`` the drones' predictions are first corrected as in flight
+    (:meth:`~dronefl.tracking.reports.NoiseReporter.correct`)."""
     scenario = episode.scenario
-    reports = drone_reports(episode) if config.noise_split == "reported" else None
+    if correct_bias and episode.bias_corrected:
+        raise EpisodeError(
+            f"{episode.path}: its predictions were corrected in flight already; replay it "
+            "without --correct-bias"
+        )
+    reports = None
+    if config.noise_split == "reported" or correct_bias:
+        sent, reports = drone_reports(episode, correct_bias)
+        episode = replace(episode, prediction=sent, bias_corrected=correct_bias)
+        if config.noise_split != "reported":
+            reports = None
     fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
     n_steps = episode.prediction.shape[0]
     fused = np.full_like(episode.track_position, np.nan)
@@ -298,6 +319,7 @@ def replay(
         fuser.rejections,
         fuser.resets,
         views_errors(fused, truth, seen),
+        correct_bias,
     )
 
 
@@ -327,7 +349,9 @@ def format_result(result: ReplayResult) -> str:
     head += ["as flown"]
     lines = [
         f"Replay of {result.episode} ({result.scenario}), fusion method "
-        f"{result.fusion.method!r}, q = {result.fusion.acceleration_psd} m²/s³; MSE in m².",
+        f"{result.fusion.method!r}, q = {result.fusion.acceleration_psd} m²/s³"
+        + (", the drones' predictions bias-corrected" if result.correct_bias else "")
+        + "; MSE in m².",
         "",
         "| " + " | ".join(head) + " |",
         "|" + "---|" * len(head),

@@ -1,6 +1,9 @@
-"""The deployed drone's noise reports (``dronefl drone --report-noise``), without processes:
-its uplink is a prediction message followed by a noise report, and the reports are those the
-replay rebuilds from the drone's own record (the closed loop's computation)."""
+"""The deployed drone's noise reports and bias correction (``dronefl drone --report-noise
+--correct-bias``), without processes: its uplink is a prediction message followed by a noise
+report; the reports and the corrected predictions are those the replay rebuilds from the
+drone's own record (the closed loop's computation); a new model gets its own bias."""
+
+import copy
 
 import numpy as np
 import pytest
@@ -20,13 +23,16 @@ from dronefl.wire import NoiseReportMessage, PredictionMessage, split_uplink
 STEPS = 60
 
 
-def test_a_reporting_drone_sends_the_reports_its_record_gives(tmp_path):
+def _fly(tmp_path, **options):
+    """One case 2 drone (id 2: two targets, each shared with another drone) fed STEPS of the
+    world's senses; returns the drone, its sent predictions ``(STEPS, 1, N, 2)`` and its
+    noise reports by step."""
     scenario = load_scenario("case2")
-    drone_id = 2  # sees two targets, each shared with another drone
+    drone_id = 2
     predictor = TrajectoryPredictor(
         build_model(PretrainSpec(scenario, "dronefl").model, seed=0), runtime="torch"
     )
-    settings = DroneSettings("case2", drone_id, tmp_path / "model.npz", tmp_path, report_noise=True)
+    settings = DroneSettings("case2", drone_id, tmp_path / "model.npz", tmp_path, **options)
     info = {"dt": scenario.dt, "scenario": "case2", "environment": "orchard", "seed": 0,
             "steps": STEPS}  # fmt: skip
     drone = DroneProcess(settings, info, predictor)
@@ -42,24 +48,85 @@ def test_a_reporting_drone_sends_the_reports_its_record_gives(tmp_path):
         message = PredictionMessage.decode(uplink)
         for target_id, position in zip(message.target_ids, message.positions[:, 0], strict=True):
             predictions[k, 0, scenario.target_ids.index(target_id)] = position
-        if k < settings.past_steps - 1:  # no window yet: no predictions, no report
-            assert message.target_ids == () and report == b""
+        if k < settings.past_steps - 1 or not settings.report_noise:  # no window or no reports
+            assert report == b""
+            assert k >= settings.past_steps - 1 or message.target_ids == ()
         else:
             reports.append((k, NoiseReportMessage.decode(report)))
         world.step(np.zeros((len(scenario.drones), 2)))
+    return drone, predictions, reports
+
+
+def _ground(drone):
+    """The drone's detections back-projected as its reporter does."""
+    scenario = load_scenario("case2")
     record = drone.record
     boxes = np.where(record.detected[:, :, None], record.boxes, np.nan)
     camera = PinholeCamera.from_spec(scenario.camera)
-    ground = box_ground_positions(camera, boxes, record.odometry, scenario.vehicle.height / 2)
-    expected = forecast_residual_reports(predictions, [ground])
+    return box_ground_positions(camera, boxes, record.odometry, scenario.vehicle.height / 2)
+
+
+@pytest.fixture(scope="module")
+def flown(tmp_path_factory):
+    """The same drone flown plain and with ``--report-noise --correct-bias``."""
+    root = tmp_path_factory.mktemp("drones")
+    raw = _fly(root / "raw")
+    return raw, _fly(root / "corrected", report_noise=True, correct_bias=True)
+
+
+def test_a_reporting_drone_sends_the_reports_its_record_gives(flown):
+    _, (drone, sent, reports) = flown
+    target_ids = load_scenario("case2").target_ids
+    _, expected = forecast_residual_reports(sent, [_ground(drone)])  # of what it sent
     compared = 0
     for k, report in reports:
-        assert report.drone_id == drone_id and report.step == k
+        assert report.drone_id == 2 and report.step == k
         for target_id, noise in zip(report.target_ids, report.noise, strict=True):
-            want = expected[k, 0, scenario.target_ids.index(target_id)]
+            want = expected[k, 0, target_ids.index(target_id)]
             np.testing.assert_allclose(noise, want, rtol=2e-3, atol=1e-4)  # half floats
             compared += 1
     assert compared > 50
+
+
+def test_a_correcting_drone_sends_what_the_replay_rebuilds(flown):
+    # The same drone without and with --correct-bias: the corrected predictions are the raw
+    # ones less the running mean of the residuals of what was sent.
+    (_, raw, no_reports), (drone, sent, _) = flown
+    assert no_reports == []
+    expected, _ = forecast_residual_reports(raw, [_ground(drone)], correct_bias=True)
+    np.testing.assert_allclose(sent, expected, atol=0.011)  # centimetres on the radio
+    assert np.nanmax(np.abs(sent - raw)) > 0.05  # and it did correct
+
+
+def test_a_new_model_gets_its_own_bias_from_the_drones_record(flown):
+    # Re-estimated with the model flown, the bias is the one the drone kept in flight (the
+    # same residuals, but for the centimetres on the radio); with another model it is that
+    # model's: the EMA of its own residuals over the record.
+    _, (drone, _, _) = flown
+    reporter, record = copy.deepcopy(drone.reporter), drone.record
+    kept = reporter.residual.bias()
+    reporter.rebase(record, drone.predictor, drone.settings.past_steps)
+    np.testing.assert_allclose(reporter.residual.bias(), kept, atol=0.01)
+    other = TrajectoryPredictor(
+        build_model(PretrainSpec(load_scenario("case2"), "dronefl").model, seed=1),
+        runtime="torch",
+    )
+    raw = np.full((STEPS, 1, len(record.target_ids), 2), np.nan)
+    for k in range(drone.settings.past_steps - 1, STEPS):
+        window = slice(k + 1 - drone.settings.past_steps, k + 1)
+        raw[k, 0, record.assigned] = other.predict(
+            record.odometry[window], record.boxes[window][:, record.assigned],
+            record.detected[window][:, record.assigned],
+        )[:, 0]  # fmt: skip
+    reporter.rebase(record, other, drone.settings.past_steps)
+    ema = np.zeros((len(record.target_ids), 2))
+    ground = _ground(drone)
+    for k in range(STEPS - 1):
+        e = raw[k, 0] - ground[k + 1]
+        ok = np.isfinite(e).all(axis=1)
+        ema[ok] += reporter.residual.rate * (e[ok] - ema[ok])
+    np.testing.assert_allclose(reporter.residual.bias(), ema, atol=1e-9)
+    assert np.abs(ema - kept).max() > 0.05
 
 
 def test_split_uplink_without_a_report_and_with_a_short_payload():

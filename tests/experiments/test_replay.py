@@ -173,7 +173,7 @@ def test_replay_rebuilds_the_drones_noise_reports_from_their_records(tmp_path):
     with pytest.raises(EpisodeError, match="checkpoint.pkl: not found"):
         drone_reports(episode)
     _records_checkpoint(tmp_path / "ep", truth)
-    reports = drone_reports(episode)
+    _, reports = drone_reports(episode)
     # Exact detections: each report is the EMA of the prediction's own squared error:
     # 0.5^2 per axis for drone 1, 0.2^2 for drone 2 on target 2; none for drone 3.
     final = reports[-1]
@@ -188,3 +188,33 @@ def test_replay_rebuilds_the_drones_noise_reports_from_their_records(tmp_path):
     assert ok.exit_code == 0, ok.output
     bad = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--noise-split", "oracle"])
     assert bad.exit_code == 2 and "noise_split" in bad.output
+
+
+def test_replay_corrects_the_drones_bias_as_they_would_in_flight(tmp_path):
+    folder = tmp_path / "ep"
+    _, truth = _episode(folder, n_steps=400)
+    with np.load(folder / "episode.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["prediction"][:, 0] += (0.6, -0.4)  # drone 1 off by a constant 0.72 m
+    np.savez(folder / "episode.npz", **arrays)
+    _records_checkpoint(folder, truth)
+    episode = load_episode(folder)
+    config = replay_config(episode.scenario)
+    raw = replay(episode, config)
+    corrected = replay(episode, config, correct_bias=True)
+    assert corrected.correct_bias and not raw.correct_bias
+    for before, after in zip(raw.targets, corrected.targets, strict=True):
+        drone1 = {d.drone_id: d.mse for d in before.drones}[1]
+        drone1_after = {d.drone_id: d.mse for d in after.drones}[1]
+        assert drone1 == pytest.approx(0.5 + 0.52, rel=0.2)  # noise 2 x 0.25 + offset²
+        assert drone1_after < 0.7  # the offset is gone after the EMA's first ~50 steps
+    assert (
+        "bias-corrected"
+        in CliRunner().invoke(app, ["replay", str(folder), "--correct-bias"]).output
+    )
+    # An episode whose drones corrected in flight is not corrected twice.
+    (folder / "metrics.json").write_text(
+        json.dumps({"config": {"case": 2, "seed": 0, "correct_bias": True}})
+    )
+    with pytest.raises(EpisodeError, match="corrected in flight already"):
+        replay(load_episode(folder), config, correct_bias=True)

@@ -1,7 +1,7 @@
-"""The drones' noise reports in the closed loop (``--noise-split reported``): sent beside the
-predictions and counted, the fusion's setting in metrics.json, a replay of the episode
-reproducing its tracks, and a killed episode resuming bit-identically (each drone's running
-estimate is in the checkpoint)."""
+"""The drones' noise reports and bias correction in the closed loop (``--noise-split reported
+--correct-bias``): reports sent beside the predictions and counted, the settings in
+metrics.json, a replay of the episode reproducing its tracks, and a killed episode resuming
+bit-identically (each drone's running estimates are in the checkpoint)."""
 
 import json
 import pickle
@@ -16,7 +16,7 @@ from dronefl.experiments.replay import load_episode, replay, replay_config
 from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
 
 ARGS = ["--scenario", "case2", "--method", "fixed", "--noise-split", "reported",
-        "--duration", "21", "--fl-period", "7", "--no-animate"]  # fmt: skip
+        "--correct-bias", "--duration", "21", "--fl-period", "7", "--no-animate"]  # fmt: skip
 WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
 
 
@@ -42,12 +42,13 @@ def test_reported_noise_flies_resumes_and_replays(quick_pretrained_case2, tmp_pa
     with (killed / CHECKPOINT_NAME).open("rb") as handle:
         saved = pickle.load(handle)
     assert saved.step == 35 and len(saved.reporters) == 3
+    assert any(np.any(r.residual.bias() != 0) for r in saved.reporters)
     assert cli_process([*argv, "--resume"]) == 0
 
     config = TrackConfig(
         scenario=load_scenario("case2"), method="fixed", noise_split="reported", duration=21.0,
         fl_period=7.0, pretrained=pretrained, out=tmp_path / "reference", progress=False,
-        animate=False,
+        animate=False, correct_bias=True,
     )  # fmt: skip
     metrics = run_episode(config)
     reference = _outcome(tmp_path / "reference")
@@ -58,14 +59,17 @@ def test_reported_noise_flies_resumes_and_replays(quick_pretrained_case2, tmp_pa
 
     # Sent and counted: 7 + 7 n bytes per drone and step beside 9 + 6 n of predictions.
     assert json.loads(metrics.config["fusion_config"])["noise_split"] == "reported"
+    assert metrics.config["correct_bias"] is True
     comm = metrics.communication
     for drone in (1, 2, 3):
         reports = comm.kb_per_s(drone, "up", "noise_reports")
         predictions = comm.kb_per_s(drone, "up", "predictions")
         assert 0 < reports < 1.2 * predictions
-    # A replay with the same split rebuilds the reports from the drones' records: the same
-    # tracks but for the half-float rounding of the reports on the radio.
+    # A replay with the same split rebuilds the reports from the drones' records and the
+    # predictions as sent (corrected in flight): the same tracks but for the half-float
+    # rounding of the reports on the radio.
     episode = load_episode(tmp_path / "reference")
+    assert episode.bias_corrected
     again = replay(episode, replay_config(episode.scenario, noise_split="reported"))
     as_flown = [t.recorded_mse for t in again.targets]
     np.testing.assert_allclose([t.fused_mse for t in again.targets], as_flown, rtol=0.02)
@@ -91,3 +95,7 @@ def test_episodes_flown_before_the_option_keep_their_settings(tmp_path):
     ).settings()
     assert reported["noise_split"] == "reported"
     assert json.loads(reported["fusion_config"])["noise_split"] == "reported"
+    # Likewise the bias correction: named only when on.
+    assert "correct_bias" not in adaptive
+    corrected = TrackConfig(scenario=load_scenario("case2"), correct_bias=True, out=tmp_path)
+    assert corrected.settings()["correct_bias"] is True

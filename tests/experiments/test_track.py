@@ -193,9 +193,10 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
         recommended.label_drones,
         recommended.epochs,
         recommended.noise_split,
-    ) == ("metric-scaffold", "lower", 1, "reported")
+        recommended.correct_bias,
+    ) == ("metric-scaffold", "lower", 1, "reported", True)
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
-    assert default.noise_split == "adaptive"
+    assert default.noise_split == "adaptive" and not default.correct_bias

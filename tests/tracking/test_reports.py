@@ -1,6 +1,8 @@
 """The drones' own noise reports: the forecast residual against the next detection, its
 ground back-projection, its causality, and the fusion sharing two drones' R by the reports."""
 
+import pickle
+
 import numpy as np
 import pytest
 
@@ -39,7 +41,7 @@ def test_the_reported_noise_converges_to_prediction_plus_detection_noise():
     truth = np.cumsum(rng.normal(0, 0.1, (n + 1, 1, 2)), axis=0)
     predictions = (truth[1:] + rng.normal(0, 0.5, (n, 1, 2)))[:, None]  # (K, M=1, N=1, 2)
     detected = [truth + rng.normal(0, 0.1, truth.shape)]
-    reports = forecast_residual_reports(predictions, detected, rate=0.002)
+    _, reports = forecast_residual_reports(predictions, detected, rate=0.002)
     assert np.isnan(reports[0]).all()  # nothing to compare with yet
     final = reports[-1, 0, 0]
     assert final == pytest.approx(0.26 * np.eye(2), abs=0.026)
@@ -49,14 +51,52 @@ def test_a_report_uses_only_what_the_drone_knew_when_it_sent_it():
     rng = np.random.default_rng(2)
     predictions = rng.normal(0, 1, (50, 2, 3, 2))
     detected = [rng.normal(0, 1, (50, 3, 2)) for _ in range(2)]
-    reports = forecast_residual_reports(predictions, detected)
+    _, reports = forecast_residual_reports(predictions, detected)
     later = [d.copy() for d in detected]
     later[0][30:] += 5.0  # detections from step 30 on
     predictions_later = predictions.copy()
     predictions_later[30:] += 5.0  # predictions from step 30 on
-    again = forecast_residual_reports(predictions_later, later)
+    _, again = forecast_residual_reports(predictions_later, later)
     assert np.array_equal(reports[:30], again[:30], equal_nan=True)
     assert not np.allclose(reports[31:, 0], again[31:, 0])
+
+
+def test_the_bias_correction_removes_a_constant_offset_and_keeps_causality():
+    # Predictions off by (0.8, -0.3) m with N(0, 0.3^2) noise; detections unbiased
+    # (N(0, 0.05^2)): the running mean converges to the offset, the corrected predictions
+    # lose it, and the reports then measure the noise alone (0.09 + 0.0025 per axis).
+    rng = np.random.default_rng(3)
+    n, offset = 4000, np.array([0.8, -0.3])
+    truth = np.cumsum(rng.normal(0, 0.1, (n + 1, 1, 2)), axis=0)
+    raw = (truth[1:] + offset + rng.normal(0, 0.3, (n, 1, 2)))[:, None]
+    detected = [truth + rng.normal(0, 0.05, truth.shape)]
+    sent, reports = forecast_residual_reports(raw, detected, correct_bias=True)
+    assert np.array_equal(sent[0], raw[0])  # nothing known yet: sent as predicted
+    late = slice(n // 2, None)
+    error = sent[late, 0, 0] - truth[1:][late, 0]
+    assert np.abs(error.mean(axis=0)).max() < 0.05
+    assert reports[-1, 0, 0] == pytest.approx(0.0925 * np.eye(2), abs=0.03)
+    # The same with the drone's own loop: the bias it subtracts at step k is the EMA, from
+    # zero, of the raw residuals z_i - g_{i+1} of steps i < k (the integrator form).
+    residual = ForecastResidual(1)
+    ema = np.zeros(2)
+    for k in range(200):
+        residual.observe(detected[0][k])
+        if k > 0:
+            ema += residual.rate * (raw[k - 1, 0, 0] - detected[0][k, 0] - ema)
+        assert residual.bias()[0] == pytest.approx(ema, abs=1e-12)
+        residual.predicted(raw[k, 0] - residual.bias())
+    # Without the correction the predictions travel unchanged and the reports do not move.
+    unchanged, plain = forecast_residual_reports(raw, detected)
+    assert np.array_equal(unchanged, raw)
+    assert not np.allclose(plain[-1], reports[-1])
+
+
+def test_an_estimate_pickled_before_the_bias_was_kept_loads_with_a_zero_bias():
+    old = ForecastResidual(3)
+    del old.__dict__["_b"]
+    loaded = pickle.loads(pickle.dumps(old))
+    assert np.array_equal(loaded.bias(), np.zeros((3, 2)))
 
 
 def test_forecast_residual_refuses_a_bad_rate():
