@@ -173,13 +173,13 @@ def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
         env=run_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
     )  # fmt: skip
     try:
-        # Once the SuperLink listens, 20 s leave the drone several tries of its SuperNode
+        # Once the SuperLink listens, 14 s leave the drone several tries of its SuperNode
         # (1, 2, 4 s apart), all refused; a loaded machine may take 8 s over the first.
         wait_for(lambda: port_open("127.0.0.1", base + 2), 120, "the cloud's SuperLink")
         drone = subprocess.run(
             cli("drone", "--id", "2", "--model", str(model), "--tls-dir", str(intruder),
                 "--superlink", f"127.0.0.1:{base + 2}", "--runtime-port", str(base + 12),
-                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "20",
+                "--connect", f"127.0.0.1:{base},127.0.0.1:{base + 1}", "--start-timeout", "14",
                 "--data-dir", str(tmp_path / "disk")),
             env=run_env, capture_output=True, text=True, timeout=200,
         )  # fmt: skip

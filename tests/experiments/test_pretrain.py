@@ -178,7 +178,7 @@ def test_held_out_mse_reads_the_last_evaluated_round(tmp_path):
 
 
 def test_the_image_model_is_pretrained_on_rendered_frames_once(tmp_path):
-    spec = PretrainSpec(SCENARIO, "image", duration=12.0)
+    spec = PretrainSpec(SCENARIO, "image", duration=8.0)
     first = pretrain(spec, tmp_path, progress=False)
 
     path = spec.model_path(tmp_path)
