@@ -147,7 +147,7 @@ def demo(
 ) -> None:
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
-    the recommended setting (--config metric-scaffold --label-drones lower --epochs 1
+    the recommended setting (--config metric-scaffold --label-drones others --epochs 1
     --noise-split reported --correct-bias), for 600 s: seed 0 of the README's Table I row of
     that setting.
 

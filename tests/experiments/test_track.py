@@ -194,7 +194,7 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
         recommended.epochs,
         recommended.noise_split,
         recommended.correct_bias,
-    ) == ("metric-scaffold", "lower", 1, "reported", True)
+    ) == ("metric-scaffold", "others", 1, "reported", True)
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
