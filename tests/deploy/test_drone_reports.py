@@ -143,3 +143,17 @@ def test_the_deployment_refuses_an_unknown_noise_split(tmp_path):
         DeployConfig(scenario="case2", out=tmp_path, noise_split="oracle")
     with pytest.raises(ValueError, match="--noise-split"):
         CloudSettings(scenario="case2", model="m.npz", out=str(tmp_path), noise_split="oracle")
+
+
+def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
+    from dronefl.deploy.launcher import DeployConfig, _commands
+
+    scenario = load_scenario("case2")
+    both = {"--report-noise", "--correct-bias"}
+    for split, correct, flags in (("adaptive", False, set()), ("reported", True, both)):
+        config = DeployConfig(
+            scenario="case2", out=tmp_path, noise_split=split, correct_bias=correct
+        )
+        commands = _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)
+        for d in scenario.drone_ids:
+            assert flags == both & set(commands[f"drone-{d}"])
