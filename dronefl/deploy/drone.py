@@ -170,15 +170,13 @@ class DroneProcess:
         message = PredictionMessage(drone_id, sense.step, ids, positions[:, None]).encode()
         if self.reporter is None:
             return message
-        report = self._report(sense.step, message)
-        return message + report if self.settings.report_noise else message
-
-    def _report(self, step: int, message: bytes) -> bytes:
-        """The noise report of the predictions in ``message`` (the positions as sent, in
-        centimetres, which the residual of the next step compares)."""
+        # The residual of the next step compares the positions as sent, in centimetres.
         sent = PredictionMessage.decode(message)
+        if not self.settings.report_noise:  # the bias correction's residual only
+            self.reporter.remember(sent.target_ids, sent.positions[:, 0])
+            return message
         known, rows = self.reporter.report(sent.target_ids, sent.positions[:, 0])
-        return NoiseReportMessage(self.settings.drone_id, step, known, rows).encode()
+        return message + NoiseReportMessage(drone_id, sense.step, known, rows).encode()
 
 
 def load_predictor(path: Path, past_steps: int) -> TrajectoryPredictor:

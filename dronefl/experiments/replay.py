@@ -261,7 +261,7 @@ def replay(
     reports = None
     if config.noise_split == "reported" or correct_bias:
         sent, reports = drone_reports(episode, correct_bias)
-        episode = replace(episode, prediction=sent, bias_corrected=correct_bias)
+        episode = replace(episode, prediction=sent)
         if config.noise_split != "reported":
             reports = None
     fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)

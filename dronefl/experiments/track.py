@@ -544,9 +544,10 @@ class ClosedLoop:
         residual yet); the drone keeps the predictions for its next residual."""
         if self.reporters is None:
             return [None] * len(ids)
-        known, sent = self.reporters[i].report(ids, positions)
-        if self.config.noise_split != "reported":  # kept for the bias correction only
+        if self.config.noise_split != "reported":  # the bias correction's residual only
+            self.reporters[i].remember(ids, positions)
             return [None] * len(ids)
+        known, sent = self.reporters[i].report(ids, positions)
         if not self.learner.cloud_predicts:  # the drone sends them beside its predictions
             data = NoiseReportMessage(drone_id, k, known, sent).encode()
             self.counter.add(drone_id, "up", "noise_reports", len(data))

@@ -153,8 +153,8 @@ class NoiseReporter:
     --correct-bias``) alike.
 
     Each step: :meth:`observe` once the step's detections are in the record, then
-    :meth:`correct` the predictions (with ``correct_bias``), then :meth:`report` with the
-    predictions it sends (the positions as they travel).
+    :meth:`correct` the predictions (with ``correct_bias``), then :meth:`report` (or, without
+    reports, :meth:`remember`) with the predictions it sends (the positions as they travel).
     """
 
     def __init__(self, scenario: Scenario, rate: float = REPORT_RATE) -> None:
@@ -200,14 +200,20 @@ class NoiseReporter:
         """The noise to send with the predictions ``positions`` ``(n, 2)`` m of
         ``target_ids``: the targets that have an estimate and their ``(n', 2, 2)`` m²
         (residuals of the earlier predictions only); keeps the predictions for the next
-        residual."""
+        residual (:meth:`remember`)."""
         noise = self.residual.noise()
+        self.remember(target_ids, positions)
+        known = tuple(t for t in target_ids if np.isfinite(noise[self.column[t]]).all())
+        return known, noise[[self.column[t] for t in known]].reshape(-1, 2, 2)
+
+    def remember(self, target_ids: Sequence[int], positions: np.ndarray) -> None:
+        """Keep the predictions ``positions`` ``(n, 2)`` m of ``target_ids`` as sent, for the
+        next step's residual (what a drone that corrects but does not report calls instead of
+        :meth:`report`)."""
         predicted = np.full((len(self.column), 2), np.nan)
         for target_id, position in zip(target_ids, positions, strict=True):
             predicted[self.column[target_id]] = position
         self.residual.predicted(predicted)
-        known = tuple(t for t in target_ids if np.isfinite(noise[self.column[t]]).all())
-        return known, noise[[self.column[t] for t in known]].reshape(-1, 2, 2)
 
 
 def forecast_residual_reports(

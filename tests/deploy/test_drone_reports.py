@@ -98,6 +98,13 @@ def test_a_correcting_drone_sends_what_the_replay_rebuilds(flown):
     assert np.nanmax(np.abs(sent - raw)) > 0.05  # and it did correct
 
 
+def test_a_drone_that_corrects_without_reporting_sends_the_same_predictions(flown, tmp_path):
+    _, (_, reporting, _) = flown
+    _, sent, reports = _fly(tmp_path, correct_bias=True)
+    assert reports == []  # predictions only on the radio
+    np.testing.assert_array_equal(sent, reporting)
+
+
 def test_a_new_model_gets_its_own_bias_from_the_drones_record(flown):
     # Re-estimated with the model flown, the bias is the one the drone kept in flight (the
     # same residuals, but for the centimetres on the radio); with another model it is that
