@@ -148,8 +148,8 @@ def demo(
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones others --epochs 1
-    --noise-split reported --correct-bias), for 600 s: seed 0 of the README's Table I row of
-    that setting.
+    --noise-split reported --correct-bias --detected-only), for 600 s: seed 0 of the README's
+    Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
     """
@@ -173,7 +173,8 @@ def demo(
     typer.echo(
         f"setting: --config {RECOMMENDED['preset']} --label-drones {RECOMMENDED['label_drones']}"
         f" --epochs {RECOMMENDED['epochs']} --noise-split {RECOMMENDED['noise_split']}"
-        f"{' --correct-bias' if RECOMMENDED['correct_bias'] else ''} (chosen on tuning seeds"
+        f"{' --correct-bias' if RECOMMENDED['correct_bias'] else ''}"
+        f"{' --detected-only' if RECOMMENDED['detected_only'] else ''} (chosen on tuning seeds"
         " 10-11; README, Table I)"
     )
     typer.echo(
@@ -577,6 +578,14 @@ CorrectBiasOption = Annotated[
         "against its next detection, back-projected) from the predictions it sends.",
     ),
 ]
+DetectedOnlyOption = Annotated[
+    bool,
+    typer.Option(
+        "--detected-only",
+        help="Each drone sends a target's prediction only at the steps it detects that target "
+        "(it still predicts the others; they count in the prediction error).",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -634,6 +643,7 @@ def track(
     fusion: FusionOption = "robust",
     noise_split: NoiseSplitOption = "adaptive",
     correct_bias: CorrectBiasOption = False,
+    detected_only: DetectedOnlyOption = False,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
@@ -673,6 +683,7 @@ def track(
         fusion=fusion,
         noise_split=noise_split,
         correct_bias=correct_bias,
+        detected_only=detected_only,
         past_steps=past_steps,
         preset=preset,
         epochs=epochs,
@@ -737,6 +748,7 @@ def table1(
     fusion: FusionOption = "robust",
     noise_split: NoiseSplitOption = "adaptive",
     correct_bias: CorrectBiasOption = False,
+    detected_only: DetectedOnlyOption = False,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -763,8 +775,8 @@ def table1(
     base = _track_config(
         scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period, labels=labels,
         label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
-        noise_split=noise_split, correct_bias=correct_bias, preset=preset, epochs=epochs, lr=lr,
-        weights_dtype=weights_dtype,
+        noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
+        preset=preset, epochs=epochs, lr=lr, weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
     )  # fmt: skip
@@ -875,6 +887,13 @@ def replay(
             "`track --correct-bias` does in flight (rebuilt from checkpoint.pkl)."
         ),
     ] = False,
+    detected_only: Annotated[
+        bool,
+        typer.Option(
+            help="Fuse only the predictions each drone made while it detected the target, as "
+            "`track --detected-only` sends them (from checkpoint.pkl's records)."
+        ),
+    ] = False,
     labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
     max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
@@ -910,7 +929,14 @@ def replay(
             fading=fading,
             noise_split=noise_split,
         )
-        result = run(recorded, config, labels=labels, max_std=max_std, correct_bias=correct_bias)
+        result = run(
+            recorded,
+            config,
+            labels=labels,
+            max_std=max_std,
+            correct_bias=correct_bias,
+            detected_only=detected_only,
+        )
     except (EpisodeError, ValueError) as exc:
         raise fail(str(exc)) from None
     typer.echo(format_result(result))
@@ -1013,6 +1039,7 @@ def drone(
         ),
     ] = False,
     correct_bias: CorrectBiasOption = False,
+    detected_only: DetectedOnlyOption = False,
 ) -> None:
     """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
     controls down over Zenoh, and a Flower SuperNode that trains on that disk.
@@ -1035,6 +1062,7 @@ def drone(
             start_timeout,
             report_noise=report_noise,
             correct_bias=correct_bias,
+            detected_only=detected_only,
         )
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
@@ -1063,6 +1091,14 @@ def cloud(
     label_drones: LabelDronesOption = "all",
     deshrink_labels: DeshrinkOption = False,
     noise_split: NoiseSplitOption = "adaptive",
+    detected_only: Annotated[
+        bool,
+        typer.Option(
+            "--detected-only",
+            help="The drones send only the predictions of targets they detect (their "
+            "--detected-only): a drone learns a label of a target it watches from the others.",
+        ),
+    ] = False,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1101,6 +1137,7 @@ def cloud(
             deshrink_labels=deshrink_labels,
             preset=preset,
             noise_split=noise_split,
+            detected_only=detected_only,
         )
         fl = closed_loop_settings(
             preset,
@@ -1148,6 +1185,7 @@ def deploy_up(
     deshrink_labels: DeshrinkOption = False,
     noise_split: NoiseSplitOption = "adaptive",
     correct_bias: CorrectBiasOption = False,
+    detected_only: DetectedOnlyOption = False,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1184,6 +1222,7 @@ def deploy_up(
             deshrink_labels=deshrink_labels,
             noise_split=noise_split,
             correct_bias=correct_bias,
+            detected_only=detected_only,
         )
         metrics = run_deploy(config)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)

@@ -20,6 +20,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
 
+import numpy as np
 import yaml
 from pydantic import ConfigDict, Field, ValidationError, model_validator
 from pydantic.dataclasses import dataclass
@@ -174,6 +175,10 @@ class Scenario:
         canonical JSON): equal for equal scenarios, different after any edit, name included."""
         canonical = json.dumps(dataclasses.asdict(self), sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canonical.encode()).hexdigest()[:12]
+
+    def assignment(self) -> np.ndarray:
+        """``(M, N)`` bool: drone ``drone_ids[i]`` watches target ``target_ids[j]``."""
+        return np.array([[t in d.targets for t in self.target_ids] for d in self.drones])
 
     def drone(self, drone_id: int) -> DroneSpec:
         """The drone with id ``drone_id``."""

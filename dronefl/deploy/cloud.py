@@ -90,7 +90,10 @@ class CloudSettings:
     setting of the rounds (a key of :data:`~dronefl.fl.records.PRESETS`, as ``dronefl track
     --config``; the rounds' own settings travel as :class:`~dronefl.fl.records.FlSettings`);
     ``noise_split`` the fusion's (as ``dronefl track --noise-split``: ``reported`` uses the
-    noise reports that follow each drone's predictions).
+    noise reports that follow each drone's predictions); ``detected_only``: the drones send
+    only the predictions of targets they detect (``dronefl drone --detected-only``), so a
+    drone's own condition in ``--label-drones`` is that it watches the target (as ``dronefl
+    track --detected-only``).
     """
 
     scenario: str
@@ -109,6 +112,7 @@ class CloudSettings:
     deshrink_labels: bool = False
     preset: str = "ours"
     noise_split: str = "adaptive"
+    detected_only: bool = False
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -397,6 +401,7 @@ class CloudEpisode:
         own, pull = training_labels(
             smoothed, self.prediction, self.drone_position[:steps], altitudes,
             self.settings.label_drones, self.settings.deshrink_labels,
+            self.scenario.assignment() if self.settings.detected_only else None,
         )  # fmt: skip
         if self.settings.deshrink_labels:
             log(INFO, "round %d: labels de-shrunk by the pull %.3f", server_round, pull)

@@ -54,7 +54,7 @@ from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
-from dronefl.tracking.reports import NoiseReporter
+from dronefl.tracking.reports import NoiseReporter, detected_now
 from dronefl.wire import NoiseReportMessage, PredictionMessage
 
 #: How the SuperNode logs the node id the SuperLink assigned it.
@@ -73,7 +73,10 @@ class DroneSettings:
     ``report_noise``: also send the drone's own noise estimate with its predictions
     (:mod:`dronefl.tracking.reports`; the cloud's ``--noise-split reported`` uses it);
     ``correct_bias``: subtract the running mean of its forecast residual from the predictions
-    it sends (as ``dronefl track --correct-bias``).
+    it sends (as ``dronefl track --correct-bias``); ``detected_only``: send a target's
+    prediction only at the steps it detects that target (as ``dronefl track
+    --detected-only``; the cloud never sees the others, so the deployment's prediction error
+    is over the predictions sent).
     """
 
     scenario: str
@@ -88,6 +91,7 @@ class DroneSettings:
     past_steps: int = 10
     report_noise: bool = False
     correct_bias: bool = False
+    detected_only: bool = False
 
     @property
     def link(self) -> LinkConfig:
@@ -142,7 +146,12 @@ class DroneProcess:
         with self.lock:
             self.predictor.load_state(saved.state)
             if self.settings.correct_bias:  # the new model's bias, not the old one's
-                self.reporter.rebase(self.record, self.predictor, self.settings.past_steps)
+                self.reporter.rebase(
+                    self.record,
+                    self.predictor,
+                    self.settings.past_steps,
+                    self.settings.detected_only,
+                )
         print(
             f"drone {self.settings.drone_id}: model of round {saved.server_round} loaded",
             flush=True,
@@ -162,6 +171,8 @@ class DroneProcess:
             if window is None:
                 return PredictionMessage(drone_id, sense.step, (), np.zeros((0, 1, 2))).encode()
             predicted = self.predictor.predict(*window)[:, 0]  # (n_assigned, 2) m
+            if self.settings.detected_only:  # the others are not sent
+                predicted = np.where(detected_now(self.record)[:, None], predicted, np.nan)
         assigned = self.record.target_ids[self.record.assigned]
         seen = np.isfinite(predicted).all(axis=1)
         ids, positions = tuple(int(t) for t in assigned[seen]), predicted[seen]

@@ -62,6 +62,7 @@ class DeployConfig:
     deshrink_labels: bool = False
     noise_split: str = "adaptive"
     correct_bias: bool = False
+    detected_only: bool = False
 
     def __post_init__(self) -> None:
         if self.noise_split not in NOISE_SPLITS:
@@ -210,6 +211,7 @@ def _commands(
             "--label-drones", config.label_drones,
             *(["--deshrink-labels"] if config.deshrink_labels else []),
             "--noise-split", config.noise_split,
+            *(["--detected-only"] if config.detected_only else []),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,
@@ -238,6 +240,7 @@ def _commands(
             "--data-dir", str(out / "drones" / f"drone-{d}"),
             *(["--report-noise"] if config.noise_split == "reported" else []),
             *(["--correct-bias"] if config.correct_bias else []),
+            *(["--detected-only"] if config.detected_only else []),
         ]  # fmt: skip
     return commands
 

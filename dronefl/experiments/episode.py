@@ -24,7 +24,13 @@ from dronefl.tracking.set_distances import SetDistances
 @dataclass
 class EpisodeLog:
     """Per-step arrays of an episode (index k is time ``k dt``); column j is target
-    ``scenario.target_ids[j]``, row i drone ``scenario.drone_ids[i]``."""
+    ``scenario.target_ids[j]``, row i drone ``scenario.drone_ids[i]``.
+
+    ``prediction`` holds every prediction a drone made (Table I's prediction error is over
+    them all) and ``sent`` which of them went to the cloud: all of them, unless the drones
+    withhold the predictions of targets they do not detect at that step
+    (``TrackConfig.detected_only``). Left out, ``sent`` is every finite prediction.
+    """
 
     t: np.ndarray  # (K+1,) s
     target_position: np.ndarray  # (K+1, N, 2) true, m
@@ -35,6 +41,22 @@ class EpisodeLog:
     trace: np.ndarray  # (K, N) Tr P after the update at k, m^2 (+ (m/s)^2)
     cost: np.ndarray  # (K,) planner cost J
     fl_steps: list[int] = field(default_factory=list)
+    sent: np.ndarray | None = None  # (K, M, N) bool: prediction (k, i, j) reached the cloud
+
+    def __post_init__(self) -> None:
+        if self.sent is None:
+            self.sent = np.isfinite(self.prediction).all(axis=-1)
+
+    def __setstate__(self, state: dict) -> None:
+        """Unpickle, also a log saved before ``sent`` existed (every prediction was sent)."""
+        if state.get("sent") is None:
+            state["sent"] = np.isfinite(state["prediction"]).all(axis=-1)
+        self.__dict__.update(state)
+
+    def sent_predictions(self) -> np.ndarray:
+        """The predictions as the cloud received them, ``(K, M, N, 2)`` m, NaN where none
+        was sent."""
+        return np.where(self.sent[..., None], self.prediction, np.nan)
 
     @classmethod
     def empty(cls, scenario: Scenario, n_steps: int) -> EpisodeLog:
@@ -49,6 +71,7 @@ class EpisodeLog:
             track_position=np.full((n_steps + 1, n, 2), np.nan),
             trace=np.full((n_steps, n), np.nan),
             cost=np.zeros(n_steps),
+            sent=np.zeros((n_steps, m, n), dtype=bool),
         )
 
     def save(self, path: Path) -> Path:

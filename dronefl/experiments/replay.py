@@ -47,7 +47,9 @@ class Episode:
     position at ``k + 1`` (NaN: none); ``target_position`` ``(K+1, N, 2)`` m: the truth;
     ``track_position`` ``(K+1, N, 2)`` m: the fused tracks as flown; ``t`` ``(K+1,)`` s;
     ``bias_corrected``: the drones corrected their predictions' bias in flight (the
-    predictions are those they sent).
+    predictions are those they sent); ``sent`` ``(K, M, N)`` bool: which predictions reached
+    the cloud (all but those withheld by ``track --detected-only``; every finite one for an
+    episode recorded before it existed).
     """
 
     path: Path
@@ -57,6 +59,11 @@ class Episode:
     track_position: np.ndarray
     t: np.ndarray
     bias_corrected: bool = False
+    sent: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.sent is None:
+            object.__setattr__(self, "sent", np.isfinite(self.prediction).all(axis=-1))
 
 
 def load_episode(folder: str | Path) -> Episode:
@@ -75,6 +82,7 @@ def load_episode(folder: str | Path) -> Episode:
     try:
         with np.load(npz) as data:
             arrays = {k: np.asarray(data[k], dtype=float) for k in _ARRAYS}
+            sent = np.asarray(data["sent"], dtype=bool) if "sent" in data else None
     except (OSError, ValueError, KeyError) as exc:
         raise EpisodeError(f"{npz}: unreadable or missing an array ({exc})") from None
     k, m, n = arrays["prediction"].shape[:3]
@@ -87,7 +95,11 @@ def load_episode(folder: str | Path) -> Episode:
     for key, shape in expected.items():
         if arrays[key].shape != shape:
             raise EpisodeError(f"{npz}: {key} has shape {arrays[key].shape}, expected {shape}")
-    return Episode(folder, scenario, **arrays, bias_corrected=bool(config.get("correct_bias")))
+    if sent is not None and sent.shape != expected["prediction"][:3]:
+        shape = expected["prediction"][:3]
+        raise EpisodeError(f"{npz}: sent has shape {sent.shape}, expected {shape}")
+    corrected = bool(config.get("correct_bias"))
+    return Episode(folder, scenario, **arrays, bias_corrected=corrected, sent=sent)
 
 
 _ARRAYS = ("prediction", "target_position", "track_position", "t")
@@ -178,7 +190,8 @@ class ReplayResult:
     (gated out) and ``resets``; ``by_views``: the fused track split by how many drones
     predicted the target at the step before (:data:`VIEWS`; ``"0"`` is coasting on the motion
     model alone), each :class:`ViewsError`; ``correct_bias``: the drones' predictions were
-    bias-corrected before the fusion."""
+    bias-corrected before the fusion; ``detected_only``: only the predictions made while the
+    drone detected the target were fused."""
 
     episode: str
     scenario: str
@@ -194,6 +207,7 @@ class ReplayResult:
     resets: int
     by_views: dict[str, ViewsError]
     correct_bias: bool = False
+    detected_only: bool = False
 
     @property
     def gated_fraction(self) -> float:
@@ -214,17 +228,14 @@ def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
         raise ValueError(f"fusion settings: {exc}") from None
 
 
-def drone_reports(episode: Episode, correct_bias: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """The predictions each drone would have sent, ``(K, M, N, 2)`` m (less its bias estimate
-    with ``correct_bias``), and the noise it would have sent with each
-    (:mod:`dronefl.tracking.reports`), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
-    and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
-    plane at half the vehicle's height."""
+def episode_records(episode: Episode) -> list:
+    """The drones' onboard records (:class:`~dronefl.models.online.OnboardRecord`, boxes,
+    detected flags and odometry per step) from the episode's ``checkpoint.pkl``."""
     from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
 
     path = episode.path / CHECKPOINT_NAME
     if not path.is_file():
-        raise EpisodeError(f"{path}: not found (the drones' records give their noise reports)")
+        raise EpisodeError(f"{path}: not found (it holds the drones' onboard records)")
     try:
         with path.open("rb") as handle:
             checkpoint = pickle.load(handle)
@@ -232,14 +243,36 @@ def drone_reports(episode: Episode, correct_bias: bool = False) -> tuple[np.ndar
         raise EpisodeError(f"{path}: unreadable checkpoint ({type(exc).__name__})") from None
     if not isinstance(checkpoint, LoopCheckpoint):
         raise EpisodeError(f"{path}: not an episode checkpoint")
+    if any(record.steps < len(episode.prediction) for record in checkpoint.records):
+        raise EpisodeError(f"{path}: its records are shorter than episode.npz")
+    return checkpoint.records
+
+
+def withhold_undetected(episode: Episode) -> Episode:
+    """``episode`` with only the predictions made while the drone detected the target marked
+    sent, as ``track --detected-only`` sends them (from the records in ``checkpoint.pkl``)."""
+    steps = len(episode.prediction)
+    detected = np.stack([r.detected[:steps] for r in episode_records(episode)], axis=1)
+    return replace(episode, sent=episode.sent & detected)
+
+
+def drone_reports(episode: Episode, correct_bias: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The predictions each drone would have sent, ``(K, M, N, 2)`` m (less its bias estimate
+    with ``correct_bias``; NaN where it sent none), and the noise it would have sent with each
+    (:mod:`dronefl.tracking.reports`), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
+    and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
+    plane at half the vehicle's height."""
     camera, ground_z = ground_plane(episode.scenario)
     detected = [
         record_ground_positions(camera, record, ground_z, slice(0, record.steps))
-        for record in checkpoint.records
+        for record in episode_records(episode)
     ]
-    if any(len(d) < len(episode.prediction) for d in detected):
-        raise EpisodeError(f"{path}: its records are shorter than episode.npz")
-    return forecast_residual_reports(episode.prediction, detected, correct_bias=correct_bias)
+    return forecast_residual_reports(sent_predictions(episode), detected, correct_bias=correct_bias)
+
+
+def sent_predictions(episode: Episode) -> np.ndarray:
+    """The predictions that reached the cloud, ``(K, M, N, 2)`` m (NaN where none did)."""
+    return np.where(episode.sent[..., None], episode.prediction, np.nan)
 
 
 def replay(
@@ -248,22 +281,29 @@ def replay(
     labels: str = "smoothed",
     max_std: float = DEFAULT_MAX_STD,
     correct_bias: bool = False,
+    detected_only: bool = False,
 ) -> ReplayResult:
     """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``; with
     ``correct_bias`` the drones' predictions are first corrected as in flight
-    (:meth:`~dronefl.tracking.reports.NoiseReporter.correct`)."""
+    (:meth:`~dronefl.tracking.reports.NoiseReporter.correct`); with ``detected_only`` only
+    the predictions made while the drone detected the target are fused
+    (:func:`withhold_undetected`). Each drone's MSE is that of the predictions fused."""
     scenario = episode.scenario
     if correct_bias and episode.bias_corrected:
         raise EpisodeError(
             f"{episode.path}: its predictions were corrected in flight already; replay it "
             "without --correct-bias"
         )
+    if detected_only:
+        episode = withhold_undetected(episode)
     reports = None
     if config.noise_split == "reported" or correct_bias:
         sent, reports = drone_reports(episode, correct_bias)
         episode = replace(episode, prediction=sent)
         if config.noise_split != "reported":
             reports = None
+    else:
+        episode = replace(episode, prediction=sent_predictions(episode))
     fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
     n_steps = episode.prediction.shape[0]
     fused = np.full_like(episode.track_position, np.nan)
@@ -320,6 +360,7 @@ def replay(
         fuser.resets,
         views_errors(fused, truth, seen),
         correct_bias,
+        detected_only,
     )
 
 
@@ -351,6 +392,7 @@ def format_result(result: ReplayResult) -> str:
         f"Replay of {result.episode} ({result.scenario}), fusion method "
         f"{result.fusion.method!r}, q = {result.fusion.acceleration_psd} m²/s³"
         + (", the drones' predictions bias-corrected" if result.correct_bias else "")
+        + (", only those made while the drone detected the target" if result.detected_only else "")
         + "; MSE in m².",
         "",
         "| " + " | ".join(head) + " |",

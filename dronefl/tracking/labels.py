@@ -136,12 +136,22 @@ class GroundTruthLabels(LabelSource):
 LABEL_DRONES = ("all", "others", "lower")
 
 
-def label_drones(predicted: np.ndarray, altitudes: Sequence[float], rule: str) -> np.ndarray:
+def label_drones(
+    predicted: np.ndarray,
+    altitudes: Sequence[float],
+    rule: str,
+    assigned: np.ndarray | None = None,
+) -> np.ndarray:
     """Which drone learns from which label under ``rule`` (a name in :data:`LABEL_DRONES`).
 
     ``predicted`` ``(T, M, N)`` bool: drone ``i``'s prediction of target ``j`` for time step
-    ``t`` reached the cloud; ``altitudes`` ``(M,)`` m. Returns ``(M, T, N)`` bool: drone ``i``
-    trains on the label of target ``j`` at step ``t``.
+    ``t`` reached the cloud; ``altitudes`` ``(M,)`` m. With ``assigned`` ``(M, N)`` bool (drone
+    ``i`` watches target ``j``), drone ``i``'s own condition is that it watches the target,
+    not that its prediction reached the cloud: drones that withhold the predictions of targets
+    they do not detect (``--detected-only``) still learn those steps from the others' views (a
+    drone trains only on windows holding a detection, so a label at a step it had none is not
+    used). Returns ``(M, T, N)`` bool: drone ``i`` trains on the label of target ``j`` at step
+    ``t``.
     """
     if rule not in LABEL_DRONES:
         raise ValueError(f"label drones: unknown rule {rule!r} ({', '.join(LABEL_DRONES)})")
@@ -152,23 +162,32 @@ def label_drones(predicted: np.ndarray, altitudes: Sequence[float], rule: str) -
         raise ValueError(f"altitudes: expected shape ({n_drones},), got {altitudes.shape}")
     if rule == "all":
         return np.ones((n_drones, n_steps, n_targets), dtype=bool)
+    if assigned is not None and np.shape(assigned) != (n_drones, n_targets):
+        raise ValueError(
+            f"assigned: expected shape ({n_drones}, {n_targets}), got {np.shape(assigned)}"
+        )
     out = np.zeros((n_drones, n_steps, n_targets), dtype=bool)
     for i in range(n_drones):
         sources = np.arange(n_drones) != i
         if rule == "lower":
             sources &= altitudes < altitudes[i]
-        out[i] = predicted[:, i] & predicted[:, sources].any(axis=1)
+        own = predicted[:, i] if assigned is None else np.asarray(assigned, dtype=bool)[i]
+        out[i] = own & predicted[:, sources].any(axis=1)
     return out
 
 
 def drone_labels(
-    position: np.ndarray, prediction: np.ndarray, altitudes: Sequence[float], rule: str
+    position: np.ndarray,
+    prediction: np.ndarray,
+    altitudes: Sequence[float],
+    rule: str,
+    assigned: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Each drone's training labels ``(M, T, N, 2)`` m under ``rule`` (see :func:`label_drones`),
-    NaN where it has none: ``position`` ``(T, N, 2)`` m the labels of steps ``0 .. T-1`` (NaN
-    where there is none), ``prediction`` ``(T, M, N, 2)`` m the predictions that reached the
-    cloud at each step (NaN where none did; the prediction made at step ``t`` is of step
-    ``t + 1``, and so is the label it went into)."""
+    """Each drone's training labels ``(M, T, N, 2)`` m under ``rule`` (see :func:`label_drones`,
+    also for ``assigned``), NaN where it has none: ``position`` ``(T, N, 2)`` m the labels of
+    steps ``0 .. T-1`` (NaN where there is none), ``prediction`` ``(T, M, N, 2)`` m the
+    predictions that reached the cloud at each step (NaN where none did; the prediction made
+    at step ``t`` is of step ``t + 1``, and so is the label it went into)."""
     position = np.asarray(position, dtype=float)
     prediction = np.asarray(prediction, dtype=float)
     steps = position.shape[0]
@@ -182,7 +201,7 @@ def drone_labels(
         )
     predicted = np.zeros((steps, *prediction.shape[1:3]), dtype=bool)
     predicted[1:] = np.isfinite(prediction[: steps - 1]).all(axis=-1)
-    mask = label_drones(predicted, altitudes, rule)
+    mask = label_drones(predicted, altitudes, rule, assigned)
     return np.where(mask[..., None], position[None], np.nan)
 
 
@@ -253,14 +272,16 @@ def training_labels(
     altitudes: Sequence[float],
     rule: str,
     deshrink: bool,
+    assigned: np.ndarray | None = None,
 ) -> tuple[np.ndarray, float]:
     """What each drone trains on at a round, as ``dronefl track`` and the deployed cloud give
-    it: :func:`drone_labels` of ``position`` ``(T, N, 2)`` m under ``rule``, de-shrunk by the
+    it: :func:`drone_labels` of ``position`` ``(T, N, 2)`` m under ``rule`` (and
+    ``assigned``, with ``--detected-only``), de-shrunk by the
     pull (:func:`deshrink_labels`) when ``deshrink``; and that pull, measured either way
     (:func:`estimate_pull` over the ``T`` steps so far). ``prediction`` ``(>= T, M, N, 2)`` m,
     ``drone_position`` ``(>= T, M, 2)`` m. Returns ``(labels (M, T, N, 2) m, pull)``."""
     steps = np.asarray(position).shape[0]
-    own = drone_labels(position, prediction, altitudes, rule)
+    own = drone_labels(position, prediction, altitudes, rule, assigned)
     pull = estimate_pull(np.asarray(prediction)[:steps], drone_position)
     if deshrink:
         own = deshrink_labels(own, drone_position, pull)

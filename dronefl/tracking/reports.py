@@ -86,6 +86,15 @@ def record_ground_positions(
     return box_ground_positions(camera, boxes, record.odometry[rows], ground_z)
 
 
+def detected_now(record: OnboardRecord) -> np.ndarray:
+    """Whether the drone detects each of its assigned targets at the record's last step,
+    ``(n_assigned,)`` bool in ``record.assigned`` order: with ``detected_only`` a drone sends
+    only those targets' predictions. A prediction made while the target is not in the image
+    (occluded, or at the edge of the view) comes from a window with gaps, and its error is
+    ~35x larger (Case 2, orchard, README "The drones send what they see")."""
+    return np.asarray(record.detected[record.steps - 1, record.assigned], dtype=bool)
+
+
 class ForecastResidual:
     """One drone's running estimate of each target's prediction noise, ``(n, 2, 2)`` m².
 
@@ -174,11 +183,17 @@ class NoiseReporter:
         return np.asarray(positions, dtype=float) - bias[[self.column[t] for t in target_ids]]
 
     def rebase(
-        self, record: OnboardRecord, predictor: TrajectoryPredictor, past_steps: int
+        self,
+        record: OnboardRecord,
+        predictor: TrajectoryPredictor,
+        past_steps: int,
+        detected_only: bool = False,
     ) -> None:
         """After a model update: re-estimate the bias with ``predictor`` (the new model, L_p =
         ``past_steps``) over the last :data:`REBASE_STEPS` residuals ``record`` holds
-        (:meth:`ForecastResidual.rebase_bias`)."""
+        (:meth:`ForecastResidual.rebase_bias`); with ``detected_only`` from the predictions
+        of the steps that detected their target only (those a drone with ``detected_only``
+        sends, whose residuals it keeps in flight)."""
         last = record.steps - 1  # the step whose prediction awaits its residual
         first = max(past_steps - 1, last - REBASE_STEPS)
         if first >= last:
@@ -191,6 +206,8 @@ class NoiseReporter:
                 record.boxes[window][:, record.assigned],
                 record.detected[window][:, record.assigned],
             )[:, 0]
+        if detected_only:
+            raw[~record.detected[first:last]] = np.nan
         ground = record_ground_positions(self.camera, record, self.ground_z, slice(first, last + 1))
         self.residual.rebase_bias(raw, ground)
 

@@ -1,7 +1,8 @@
-"""The deployed drone's noise reports and bias correction (``dronefl drone --report-noise
---correct-bias``), without processes: its uplink is a prediction message followed by a noise
-report; the reports and the corrected predictions are those the replay rebuilds from the
-drone's own record (the closed loop's computation); a new model gets its own bias."""
+"""The deployed drone's noise reports, bias correction and withheld predictions (``dronefl
+drone --report-noise --correct-bias --detected-only``), without processes: its uplink is a
+prediction message followed by a noise report; the reports and the corrected predictions are
+those the replay rebuilds from the drone's own record (the closed loop's computation); a new
+model gets its own bias; only the targets it detects are sent."""
 
 import copy
 
@@ -156,11 +157,27 @@ def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
     from dronefl.deploy.launcher import DeployConfig, _commands
 
     scenario = load_scenario("case2")
-    both = {"--report-noise", "--correct-bias"}
-    for split, correct, flags in (("adaptive", False, set()), ("reported", True, both)):
+    every = {"--report-noise", "--correct-bias", "--detected-only"}
+    for split, on, flags in (("adaptive", False, set()), ("reported", True, every)):
         config = DeployConfig(
-            scenario="case2", out=tmp_path, noise_split=split, correct_bias=correct
+            scenario="case2", out=tmp_path, noise_split=split, correct_bias=on, detected_only=on
         )
         commands = _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)
         for d in scenario.drone_ids:
-            assert flags == both & set(commands[f"drone-{d}"])
+            assert flags == every & set(commands[f"drone-{d}"])
+        assert on == ("--detected-only" in commands["cloud"])  # its labels follow
+
+
+def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):
+    # `dronefl drone --detected-only`: the predictions of the targets it detects at that
+    # step, corrected by the residuals of what it sent (the replay's computation), no others.
+    (_, raw, _), _ = flown
+    drone, sent, reports = _fly(tmp_path, report_noise=True, correct_bias=True, detected_only=True)
+    detected = drone.record.detected[:STEPS]  # (STEPS, N)
+    made = np.isfinite(raw[:, 0]).all(axis=-1)
+    assert np.array_equal(np.isfinite(sent[:, 0]).all(axis=-1), made & detected)
+    assert (made & ~detected).sum() > 0 and (made & detected).sum() > 50
+    withheld = np.where(detected[:, None, :, None], raw, np.nan)
+    expected, _ = forecast_residual_reports(withheld, [_ground(drone)], correct_bias=True)
+    np.testing.assert_allclose(sent, expected, atol=0.011)  # centimetres on the radio
+    assert all(set(r.target_ids) <= set(np.nonzero(detected[k])[0] + 1) for k, r in reports)

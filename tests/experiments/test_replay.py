@@ -4,7 +4,7 @@ drones' noise reports rebuilt from their records."""
 
 import json
 import pickle
-from dataclasses import fields
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -16,6 +16,7 @@ from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
 from dronefl.experiments.replay import (
     EpisodeError,
     drone_reports,
+    format_result,
     load_episode,
     replay,
     replay_config,
@@ -218,3 +219,43 @@ def test_replay_corrects_the_drones_bias_as_they_would_in_flight(tmp_path):
     )
     with pytest.raises(EpisodeError, match="corrected in flight already"):
         replay(load_episode(folder), config, correct_bias=True)
+
+
+def test_replay_fuses_only_what_the_drones_detected(tmp_path):
+    # Drone 1 loses target 2 from view for steps 100-199 and its predictions there are 1 m
+    # off; drone 2 sees it all along. With --detected-only those 100 predictions are not
+    # fused (nor counted in drone 1's error): the replay is that of an episode without them.
+    folder = tmp_path / "ep"
+    _, truth = _episode(folder, n_steps=400)
+    with np.load(folder / "episode.npz") as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    arrays["prediction"][100:200, 0, 1] += (1.0, 0.0)
+    np.savez(folder / "episode.npz", **arrays)
+    _records_checkpoint(folder, truth)
+    with (folder / CHECKPOINT_NAME).open("rb") as handle:
+        checkpoint = pickle.load(handle)
+    checkpoint.records[0].detected[100:200, 1] = False
+    (folder / CHECKPOINT_NAME).write_bytes(pickle.dumps(checkpoint))
+    episode = load_episode(folder)
+    config = replay_config(episode.scenario)
+    every, detected = replay(episode, config), replay(episode, config, detected_only=True)
+    assert detected.detected_only and not every.detected_only
+    assert every.measurements - detected.measurements == 100
+    drone1 = {d.drone_id: d for d in detected.targets[1].drones}[1]
+    assert drone1.n == every.targets[1].drones[0].n - 100
+    assert drone1.mse == pytest.approx(every.targets[0].drones[0].mse, rel=0.3)  # no offset
+    assert "only those made while the drone detected" in format_result(detected)
+    without = {**arrays, "prediction": arrays["prediction"].copy()}
+    without["prediction"][100:200, 0, 1] = np.nan
+    gone = replay(replace(episode, prediction=without["prediction"], sent=None), config)
+    assert detected.fused_mse == gone.fused_mse and detected.label_mse == gone.label_mse
+    # An episode flown with --detected-only says what it sent: its replay fuses that alone.
+    arrays["sent"] = np.isfinite(arrays["prediction"]).all(axis=-1)
+    arrays["sent"][100:200, 0, 1] = False
+    np.savez(folder / "episode.npz", **arrays)
+    flown = replay(load_episode(folder), config)
+    assert (flown.measurements, flown.fused_mse) == (detected.measurements, detected.fused_mse)
+    arrays["sent"] = arrays["sent"][:-1]
+    np.savez(folder / "episode.npz", **arrays)
+    with pytest.raises(EpisodeError, match="sent has shape"):
+        load_episode(folder)

@@ -1,5 +1,6 @@
-"""The drones' noise reports and bias correction in the closed loop (``--noise-split reported
---correct-bias``): reports sent beside the predictions and counted, the settings in
+"""The drones' noise reports, bias correction and withheld predictions in the closed loop
+(``--noise-split reported --correct-bias --detected-only``): reports sent beside the
+predictions and counted, only the predictions of detected targets sent, the settings in
 metrics.json, a replay of the episode reproducing its tracks, and a killed episode resuming
 bit-identically (each drone's running estimates are in the checkpoint)."""
 
@@ -16,7 +17,8 @@ from dronefl.experiments.replay import load_episode, replay, replay_config
 from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
 
 ARGS = ["--scenario", "case2", "--method", "fixed", "--noise-split", "reported",
-        "--correct-bias", "--duration", "21", "--fl-period", "7", "--no-animate"]  # fmt: skip
+        "--correct-bias", "--detected-only", "--duration", "21", "--fl-period", "7",
+        "--no-animate"]  # fmt: skip
 WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
 
 
@@ -48,7 +50,7 @@ def test_reported_noise_flies_resumes_and_replays(quick_pretrained_case2, tmp_pa
     config = TrackConfig(
         scenario=load_scenario("case2"), method="fixed", noise_split="reported", duration=21.0,
         fl_period=7.0, pretrained=pretrained, out=tmp_path / "reference", progress=False,
-        animate=False, correct_bias=True,
+        animate=False, correct_bias=True, detected_only=True,
     )  # fmt: skip
     metrics = run_episode(config)
     reference = _outcome(tmp_path / "reference")
@@ -65,12 +67,24 @@ def test_reported_noise_flies_resumes_and_replays(quick_pretrained_case2, tmp_pa
         reports = comm.kb_per_s(drone, "up", "noise_reports")
         predictions = comm.kb_per_s(drone, "up", "predictions")
         assert 0 < reports < 1.2 * predictions
+    # Every prediction is logged (Table I's error is over them all); only those of targets
+    # the drone detected at that step were sent, fused, and drove the reports.
+    assert metrics.config["detected_only"] is True
+    with (tmp_path / "reference" / CHECKPOINT_NAME).open("rb") as handle:
+        saved = pickle.load(handle)
+    made = np.isfinite(reference[1]["prediction"]).all(axis=-1)
+    sent = reference[1]["sent"]
+    detected = np.stack([r.detected[: len(sent)] for r in saved.records], axis=1)
+    assert not (sent & ~detected).any() and (made & detected == sent).all()
+    assert 0 < (made & ~sent).sum() < 0.3 * made.sum()
+    assert metrics.tracking.prediction_coverage == pytest.approx(made.sum() / (105 * 7))
     # A replay with the same split rebuilds the reports from the drones' records and the
     # predictions as sent (corrected in flight): the same tracks but for the half-float
     # rounding of the reports on the radio.
     episode = load_episode(tmp_path / "reference")
     assert episode.bias_corrected
     again = replay(episode, replay_config(episode.scenario, noise_split="reported"))
+    assert again.measurements == saved.fuser.measurements  # what was sent, nothing else
     as_flown = [t.recorded_mse for t in again.targets]
     np.testing.assert_allclose([t.fused_mse for t in again.targets], as_flown, rtol=0.02)
 
@@ -99,3 +113,7 @@ def test_episodes_flown_before_the_option_keep_their_settings(tmp_path):
     assert "correct_bias" not in adaptive
     corrected = TrackConfig(scenario=load_scenario("case2"), correct_bias=True, out=tmp_path)
     assert corrected.settings()["correct_bias"] is True
+    # And the withheld predictions.
+    assert "detected_only" not in adaptive
+    withheld = TrackConfig(scenario=load_scenario("case2"), detected_only=True, out=tmp_path)
+    assert withheld.settings()["detected_only"] is True

@@ -51,6 +51,20 @@ def test_episode_metrics_by_hand():
     assert metrics.total_cost == pytest.approx(15.0)
 
 
+def test_a_log_says_which_predictions_were_sent_also_one_pickled_before():
+    log = EpisodeLog.empty(load_scenario("case1"), 3)
+    log.prediction[0, 0, 0] = log.prediction[1, 1, 1] = (1.0, 2.0)
+    log.sent[1, 1, 1] = True  # the first was made but withheld (--detected-only)
+    received = log.sent_predictions()
+    assert np.isnan(received[0, 0, 0]).all() and received[1, 1, 1].tolist() == [1.0, 2.0]
+    assert tracking_metrics(log, load_scenario("case1")).prediction_coverage == 2 / 6
+    # A log pickled before `sent` existed sent every prediction it holds.
+    old = pickle.loads(pickle.dumps(log))
+    del old.__dict__["sent"]
+    loaded = pickle.loads(pickle.dumps(old))
+    assert loaded.sent[0, 0, 0] and loaded.sent[1, 1, 1] and loaded.sent.sum() == 2
+
+
 def test_onboard_record_windows_and_log():
     record = OnboardRecord(2, 35.0, (1, 2, 3), (1, 2), capacity=4, meta={})
     for k in range(3):
@@ -194,9 +208,11 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
         recommended.epochs,
         recommended.noise_split,
         recommended.correct_bias,
-    ) == ("metric-scaffold", "others", 1, "reported", True)
+        recommended.detected_only,
+    ) == ("metric-scaffold", "others", 1, "reported", True, True)
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
     assert default.noise_split == "adaptive" and not default.correct_bias
+    assert not default.detected_only

@@ -108,6 +108,14 @@ def test_label_drones_by_rule():
     lower = label_drones(predicted, altitudes, "lower")
     assert lower[:, :, 0].tolist() == [[True, False], [False, False], [False, False]]
     assert not lower[:, :, 1].any()
+    # Drones that withhold undetected predictions (--detected-only): a drone watching the
+    # target learns the steps another drone's prediction reached the cloud, its own or not.
+    assigned = np.array([[True, False], [True, False], [True, True]])
+    watched = label_drones(predicted, altitudes, "others", assigned)
+    assert watched[:, :, 0].tolist() == [[True, False], [True, True], [True, True]]
+    assert not watched[:, :, 1].any()
+    with pytest.raises(ValueError, match="assigned"):
+        label_drones(predicted, altitudes, "others", assigned[:2])
     with pytest.raises(ValueError, match="unknown rule"):
         label_drones(predicted, altitudes, "best")
     with pytest.raises(ValueError, match="altitudes"):

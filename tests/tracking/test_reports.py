@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 
 from dronefl.config import load_scenario
+from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
 from dronefl.tracking.reports import (
     ForecastResidual,
     box_ground_positions,
+    detected_now,
     forecast_residual_reports,
 )
 
@@ -97,6 +99,19 @@ def test_an_estimate_pickled_before_the_bias_was_kept_loads_with_a_zero_bias():
     del old.__dict__["_b"]
     loaded = pickle.loads(pickle.dumps(old))
     assert np.array_equal(loaded.bias(), np.zeros((3, 2)))
+
+
+def test_detected_now_reads_the_last_step_of_the_assigned_targets():
+    # Drone 2 of Case 2 watches targets 1 and 2 of 1-3: the flags of its last step, in
+    # that order, whatever it saw of target 3 or at earlier steps.
+    scenario = load_scenario("case2")
+    drone = scenario.drone(2)
+    record = OnboardRecord(drone.id, drone.altitude, scenario.target_ids, drone.targets, 5, {})
+    record.detected[:3] = [[True, True, True], [True, False, True], [False, True, False]]
+    record.steps = 2
+    assert detected_now(record).tolist() == [True, False]
+    record.steps = 3
+    assert detected_now(record).tolist() == [False, True]
 
 
 def test_forecast_residual_refuses_a_bad_rate():
