@@ -174,7 +174,8 @@ def demo(
         f"setting: --config {RECOMMENDED['preset']} --label-drones {RECOMMENDED['label_drones']}"
         f" --epochs {RECOMMENDED['epochs']} --noise-split {RECOMMENDED['noise_split']}"
         f"{' --correct-bias' if RECOMMENDED['correct_bias'] else ''}"
-        f"{' --detected-only' if RECOMMENDED['detected_only'] else ''} (chosen on tuning seeds"
+        f"{' --detected-only' if RECOMMENDED['detected_only'] else ''}"
+        f"{' --net-reports' if RECOMMENDED.get('net_reports') else ''} (chosen on tuning seeds"
         " 10-11; README, Table I)"
     )
     typer.echo(
@@ -586,6 +587,14 @@ DetectedOnlyOption = Annotated[
         "(it still predicts the others; they count in the prediction error).",
     ),
 ]
+NetReportsOption = Annotated[
+    bool,
+    typer.Option(
+        "--net-reports",
+        help="With --noise-split reported: each drone reports its prediction noise net of its "
+        "detections' own projection noise (estimated from their second differences).",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -644,6 +653,7 @@ def track(
     noise_split: NoiseSplitOption = "adaptive",
     correct_bias: CorrectBiasOption = False,
     detected_only: DetectedOnlyOption = False,
+    net_reports: NetReportsOption = False,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
@@ -684,6 +694,7 @@ def track(
         noise_split=noise_split,
         correct_bias=correct_bias,
         detected_only=detected_only,
+        net_reports=net_reports,
         past_steps=past_steps,
         preset=preset,
         epochs=epochs,
@@ -749,6 +760,7 @@ def table1(
     noise_split: NoiseSplitOption = "adaptive",
     correct_bias: CorrectBiasOption = False,
     detected_only: DetectedOnlyOption = False,
+    net_reports: NetReportsOption = False,
     preset: PresetOption = "ours",
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -776,7 +788,7 @@ def table1(
         scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period, labels=labels,
         label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
-        preset=preset, epochs=epochs, lr=lr, weights_dtype=weights_dtype,
+        net_reports=net_reports, preset=preset, epochs=epochs, lr=lr, weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
     )  # fmt: skip
@@ -894,6 +906,13 @@ def replay(
             "`track --detected-only` sends them (from checkpoint.pkl's records)."
         ),
     ] = False,
+    net_reports: Annotated[
+        bool,
+        typer.Option(
+            help="With --noise-split reported: rebuild the reports net of the drones' projection "
+            "noise, as `track --net-reports` sends them (implied for an episode flown so)."
+        ),
+    ] = False,
     labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
     max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
@@ -936,6 +955,7 @@ def replay(
             max_std=max_std,
             correct_bias=correct_bias,
             detected_only=detected_only,
+            net_reports=net_reports,
         )
     except (EpisodeError, ValueError) as exc:
         raise fail(str(exc)) from None
@@ -1040,6 +1060,7 @@ def drone(
     ] = False,
     correct_bias: CorrectBiasOption = False,
     detected_only: DetectedOnlyOption = False,
+    net_reports: NetReportsOption = False,
 ) -> None:
     """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
     controls down over Zenoh, and a Flower SuperNode that trains on that disk.
@@ -1063,6 +1084,7 @@ def drone(
             report_noise=report_noise,
             correct_bias=correct_bias,
             detected_only=detected_only,
+            net_reports=net_reports,
         )
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
@@ -1186,6 +1208,7 @@ def deploy_up(
     noise_split: NoiseSplitOption = "adaptive",
     correct_bias: CorrectBiasOption = False,
     detected_only: DetectedOnlyOption = False,
+    net_reports: NetReportsOption = False,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1223,6 +1246,7 @@ def deploy_up(
             noise_split=noise_split,
             correct_bias=correct_bias,
             detected_only=detected_only,
+            net_reports=net_reports,
         )
         metrics = run_deploy(config)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)

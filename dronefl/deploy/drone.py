@@ -76,7 +76,8 @@ class DroneSettings:
     it sends (as ``dronefl track --correct-bias``); ``detected_only``: send a target's
     prediction only at the steps it detects that target (as ``dronefl track
     --detected-only``; the cloud never sees the others, so the deployment's prediction error
-    is over the predictions sent).
+    is over the predictions sent); ``net_reports``: report the noise net of its detections'
+    projection noise (as ``dronefl track --net-reports``).
     """
 
     scenario: str
@@ -92,6 +93,7 @@ class DroneSettings:
     report_noise: bool = False
     correct_bias: bool = False
     detected_only: bool = False
+    net_reports: bool = False
 
     @property
     def link(self) -> LinkConfig:
@@ -117,7 +119,7 @@ class DroneProcess:
         self.sensed: queue.Queue[bytes] = queue.Queue()
         self.log_path = Path(settings.data_dir) / f"drone_{spec.id}.npz"
         wanted = settings.report_noise or settings.correct_bias
-        self.reporter = NoiseReporter(scenario) if wanted else None
+        self.reporter = NoiseReporter(scenario, net=settings.net_reports) if wanted else None
 
     def flush(self, payload: bytes) -> bytes:
         """Write the onboard record and the round's pseudo-labels on their steps to disk."""

@@ -63,12 +63,15 @@ class DeployConfig:
     noise_split: str = "adaptive"
     correct_bias: bool = False
     detected_only: bool = False
+    net_reports: bool = False
 
     def __post_init__(self) -> None:
         if self.noise_split not in NOISE_SPLITS:
             raise ValueError(
                 f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
             )
+        if self.net_reports and self.noise_split != "reported":
+            raise ValueError("--net-reports: needs --noise-split reported")
         if self.preset not in PRESETS:
             raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         for name in ("epochs", "lr"):  # unset: the preset's, as `dronefl track`
@@ -241,6 +244,7 @@ def _commands(
             *(["--report-noise"] if config.noise_split == "reported" else []),
             *(["--correct-bias"] if config.correct_bias else []),
             *(["--detected-only"] if config.detected_only else []),
+            *(["--net-reports"] if config.net_reports else []),
         ]  # fmt: skip
     return commands
 

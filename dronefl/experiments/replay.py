@@ -60,6 +60,7 @@ class Episode:
     t: np.ndarray
     bias_corrected: bool = False
     sent: np.ndarray | None = None
+    net_reports: bool = False
 
     def __post_init__(self) -> None:
         if self.sent is None:
@@ -98,8 +99,8 @@ def load_episode(folder: str | Path) -> Episode:
     if sent is not None and sent.shape != expected["prediction"][:3]:
         shape = expected["prediction"][:3]
         raise EpisodeError(f"{npz}: sent has shape {sent.shape}, expected {shape}")
-    corrected = bool(config.get("correct_bias"))
-    return Episode(folder, scenario, **arrays, bias_corrected=corrected, sent=sent)
+    corrected, net = bool(config.get("correct_bias")), bool(config.get("net_reports"))
+    return Episode(folder, scenario, **arrays, bias_corrected=corrected, sent=sent, net_reports=net)
 
 
 _ARRAYS = ("prediction", "target_position", "track_position", "t")
@@ -256,10 +257,13 @@ def withhold_undetected(episode: Episode) -> Episode:
     return replace(episode, sent=episode.sent & detected)
 
 
-def drone_reports(episode: Episode, correct_bias: bool = False) -> tuple[np.ndarray, np.ndarray]:
+def drone_reports(
+    episode: Episode, correct_bias: bool = False, net: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """The predictions each drone would have sent, ``(K, M, N, 2)`` m (less its bias estimate
     with ``correct_bias``; NaN where it sent none), and the noise it would have sent with each
-    (:mod:`dronefl.tracking.reports`), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
+    (:mod:`dronefl.tracking.reports`; net of its projection noise with ``net`` or for an episode
+    flown so), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
     and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
     plane at half the vehicle's height."""
     camera, ground_z = ground_plane(episode.scenario)
@@ -267,7 +271,12 @@ def drone_reports(episode: Episode, correct_bias: bool = False) -> tuple[np.ndar
         record_ground_positions(camera, record, ground_z, slice(0, record.steps))
         for record in episode_records(episode)
     ]
-    return forecast_residual_reports(sent_predictions(episode), detected, correct_bias=correct_bias)
+    return forecast_residual_reports(
+        sent_predictions(episode),
+        detected,
+        correct_bias=correct_bias,
+        net=net or episode.net_reports,
+    )
 
 
 def sent_predictions(episode: Episode) -> np.ndarray:
@@ -282,12 +291,15 @@ def replay(
     max_std: float = DEFAULT_MAX_STD,
     correct_bias: bool = False,
     detected_only: bool = False,
+    net_reports: bool = False,
 ) -> ReplayResult:
     """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``; with
     ``correct_bias`` the drones' predictions are first corrected as in flight
     (:meth:`~dronefl.tracking.reports.NoiseReporter.correct`); with ``detected_only`` only
     the predictions made while the drone detected the target are fused
-    (:func:`withhold_undetected`). Each drone's MSE is that of the predictions fused."""
+    (:func:`withhold_undetected`); with ``net_reports`` the reports are rebuilt net of the
+    drones' projection noise (as for an episode flown with it). Each drone's MSE is that of
+    the predictions fused."""
     scenario = episode.scenario
     if correct_bias and episode.bias_corrected:
         raise EpisodeError(
@@ -298,7 +310,7 @@ def replay(
         episode = withhold_undetected(episode)
     reports = None
     if config.noise_split == "reported" or correct_bias:
-        sent, reports = drone_reports(episode, correct_bias)
+        sent, reports = drone_reports(episode, correct_bias, net_reports)
         episode = replace(episode, prediction=sent)
         if config.noise_split != "reported":
             reports = None

@@ -148,6 +148,9 @@ class TrackConfig:
     sends a target's prediction only at the steps it detects that target (it still predicts
     the others, from a window with gaps, and they count in the prediction error; the cloud
     coasts the track over them, :func:`~dronefl.tracking.reports.detected_now`);
+    ``net_reports`` (with ``noise_split = "reported"``): the drones report their noise net of
+    their own detections' projection noise (:meth:`~dronefl.tracking.reports.ForecastResidual.
+    noise`);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -176,6 +179,7 @@ class TrackConfig:
     noise_split: str = "adaptive"
     correct_bias: bool = False
     detected_only: bool = False
+    net_reports: bool = False
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -212,6 +216,8 @@ class TrackConfig:
             )
         if self.noise_split == "reported" and self.fusion != "robust":
             raise ValueError("--noise-split reported: needs --fusion robust")
+        if self.net_reports and self.noise_split != "reported":
+            raise ValueError("--net-reports: needs --noise-split reported")
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "
@@ -249,8 +255,8 @@ class TrackConfig:
         how the episode was run, not what ran), with every setting of the fusion the episode
         runs (``fusion_config``, JSON: its defaults for the scenario, so that an episode flown
         with other fusion defaults is never taken for this one). ``noise_split`` appears only
-        when it is ``reported`` and ``correct_bias`` and ``detected_only`` only when set, so
-        that the episodes flown
+        when it is ``reported`` and ``correct_bias``, ``detected_only`` and ``net_reports``
+        only when set, so that the episodes flown
         before they existed stay reusable."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["scenario"] = self.scenario.name
@@ -262,6 +268,8 @@ class TrackConfig:
             del values["correct_bias"]
         if not self.detected_only:  # as every episode flown before the option (12-05)
             del values["detected_only"]
+        if not self.net_reports:  # as every episode flown before the option (12-05)
+            del values["net_reports"]
         values["fusion_config"] = json.dumps(fusion, sort_keys=True)
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
@@ -403,7 +411,7 @@ class ClosedLoop:
         self.fl_seconds = 0.0
         self.reporters: list[NoiseReporter] | None = None
         if config.noise_split == "reported" or config.correct_bias:
-            self.reporters = [NoiseReporter(scenario) for _ in self.records]
+            self.reporters = [NoiseReporter(scenario, net=config.net_reports) for _ in self.records]
         if saved is not None:
             self._restore(saved)
 

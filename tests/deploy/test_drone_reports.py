@@ -157,11 +157,12 @@ def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
     from dronefl.deploy.launcher import DeployConfig, _commands
 
     scenario = load_scenario("case2")
-    every = {"--report-noise", "--correct-bias", "--detected-only"}
+    every = {"--report-noise", "--correct-bias", "--detected-only", "--net-reports"}
     for split, on, flags in (("adaptive", False, set()), ("reported", True, every)):
         config = DeployConfig(
-            scenario="case2", out=tmp_path, noise_split=split, correct_bias=on, detected_only=on
-        )
+            scenario="case2", out=tmp_path, noise_split=split, correct_bias=on,
+            detected_only=on, net_reports=on,
+        )  # fmt: skip
         commands = _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)
         for d in scenario.drone_ids:
             assert flags == every & set(commands[f"drone-{d}"])
@@ -169,10 +170,13 @@ def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
 
 
 def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):
-    # `dronefl drone --detected-only`: the predictions of the targets it detects at that
-    # step, corrected by the residuals of what it sent (the replay's computation), no others.
+    # `dronefl drone --detected-only --net-reports`: the predictions of the targets it
+    # detects at that step, corrected by the residuals of what it sent (the replay's
+    # computation), no others; its reports net of its projection noise.
     (_, raw, _), _ = flown
-    drone, sent, reports = _fly(tmp_path, report_noise=True, correct_bias=True, detected_only=True)
+    drone, sent, reports = _fly(
+        tmp_path, report_noise=True, correct_bias=True, detected_only=True, net_reports=True
+    )
     detected = drone.record.detected[:STEPS]  # (STEPS, N)
     made = np.isfinite(raw[:, 0]).all(axis=-1)
     assert np.array_equal(np.isfinite(sent[:, 0]).all(axis=-1), made & detected)
@@ -181,3 +185,14 @@ def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):
     expected, _ = forecast_residual_reports(withheld, [_ground(drone)], correct_bias=True)
     np.testing.assert_allclose(sent, expected, atol=0.011)  # centimetres on the radio
     assert all(set(r.target_ids) <= set(np.nonzero(detected[k])[0] + 1) for k, r in reports)
+    # Its reports are net of its projection noise, as the replay rebuilds them.
+    _, net = forecast_residual_reports(sent, [_ground(drone)], net=True)
+    target_ids = load_scenario("case2").target_ids
+    for k, report in reports:
+        for target_id, noise in zip(report.target_ids, report.noise, strict=True):
+            want = net[k, 0, target_ids.index(target_id)]
+            np.testing.assert_allclose(noise, want, rtol=2e-3, atol=1e-4)  # half floats
+    from dronefl.deploy.launcher import DeployConfig
+
+    with pytest.raises(ValueError, match="--net-reports"):
+        DeployConfig(scenario="case2", out=tmp_path, net_reports=True)

@@ -191,6 +191,24 @@ def test_replay_rebuilds_the_drones_noise_reports_from_their_records(tmp_path):
     assert bad.exit_code == 2 and "noise_split" in bad.output
 
 
+def test_replay_rebuilds_net_reports_and_knows_an_episode_flown_with_them(tmp_path):
+    prediction, truth = _episode(tmp_path / "ep", n_steps=400)
+    _records_checkpoint(tmp_path / "ep", truth)
+    episode = load_episode(tmp_path / "ep")
+    _, gross = drone_reports(episode)
+    _, net = drone_reports(episode, net=True)
+    # Exact detections: no projection noise, so net = gross where above the floor.
+    assert np.allclose(net[-1, 0, 0], gross[-1, 0, 0])
+    config = replay_config(episode.scenario, noise_split="reported")
+    asked = replay(episode, config, net_reports=True)
+    (tmp_path / "ep" / "metrics.json").write_text(
+        json.dumps({"config": {"case": 2, "seed": 0, "net_reports": True}})
+    )
+    flown = load_episode(tmp_path / "ep")
+    assert flown.net_reports and not episode.net_reports
+    assert replay(flown, config).fused_mse == asked.fused_mse
+
+
 def test_replay_corrects_the_drones_bias_as_they_would_in_flight(tmp_path):
     folder = tmp_path / "ep"
     _, truth = _episode(folder, n_steps=400)

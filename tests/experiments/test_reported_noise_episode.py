@@ -117,3 +117,11 @@ def test_episodes_flown_before_the_option_keep_their_settings(tmp_path):
     assert "detected_only" not in adaptive
     withheld = TrackConfig(scenario=load_scenario("case2"), detected_only=True, out=tmp_path)
     assert withheld.settings()["detected_only"] is True
+    # And the net reports, which need reports.
+    assert "net_reports" not in reported
+    net = TrackConfig(
+        scenario=load_scenario("case2"), noise_split="reported", net_reports=True, out=tmp_path
+    )
+    assert net.settings()["net_reports"] is True
+    with pytest.raises(ValueError, match="--net-reports: needs --noise-split reported"):
+        TrackConfig(scenario=load_scenario("case2"), net_reports=True, out=tmp_path)

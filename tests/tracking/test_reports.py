@@ -11,7 +11,9 @@ from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
 from dronefl.tracking.reports import (
+    REPORT_FLOOR,
     ForecastResidual,
+    NoiseReporter,
     box_ground_positions,
     detected_now,
     forecast_residual_reports,
@@ -47,6 +49,31 @@ def test_the_reported_noise_converges_to_prediction_plus_detection_noise():
     assert np.isnan(reports[0]).all()  # nothing to compare with yet
     final = reports[-1, 0, 0]
     assert final == pytest.approx(0.26 * np.eye(2), abs=0.026)
+
+
+def test_a_net_report_leaves_out_the_detections_own_noise():
+    # A target driving straight at 0.5 m/s; predictions N(0, 0.3^2) m per axis, detections
+    # N(0, 0.25^2) (a high drone's): the gross report is (0.09 + 0.0625) I, the projection
+    # noise from the detections' second differences 0.0625 I, the net report 0.09 I.
+    rng = np.random.default_rng(4)
+    n = 20000
+    truth = (0.5 * DT * np.arange(n + 1))[:, None, None] * np.array([1.0, 0.4])
+    predictions = (truth[1:] + rng.normal(0, 0.3, (n, 1, 2)))[:, None]
+    detected = [truth + rng.normal(0, 0.25, truth.shape)]
+    _, gross = forecast_residual_reports(predictions, detected, rate=0.002)
+    _, net = forecast_residual_reports(predictions, detected, rate=0.002, net=True)
+    assert gross[-1, 0, 0] == pytest.approx(0.1525 * np.eye(2), abs=0.016)
+    assert net[-1, 0, 0] == pytest.approx(0.09 * np.eye(2), abs=0.012)
+    residual = ForecastResidual(1, rate=0.002)
+    for g in detected[0][:5000]:
+        residual.observe(g)
+    assert residual.projection_noise()[0] == pytest.approx(0.0625 * np.eye(2), abs=0.008)
+    # Before three consecutive detections the net report is the gross one; a drone whose
+    # detections are noisier than its predictions reports the floor, not a negative noise.
+    assert np.array_equal(net[1], gross[1], equal_nan=True)
+    sharp = (truth[1:] + rng.normal(0, 0.01, (n, 1, 2)))[:, None]
+    _, floored = forecast_residual_reports(sharp, detected, rate=0.002, net=True)
+    assert np.linalg.eigvalsh(floored[-1, 0, 0]).min() == pytest.approx(REPORT_FLOOR)
 
 
 def test_a_report_uses_only_what_the_drone_knew_when_it_sent_it():
@@ -96,9 +123,15 @@ def test_the_bias_correction_removes_a_constant_offset_and_keeps_causality():
 
 def test_an_estimate_pickled_before_the_bias_was_kept_loads_with_a_zero_bias():
     old = ForecastResidual(3)
-    del old.__dict__["_b"]
+    for name in ("_b", "_v", "_seen"):  # the bias, the projection noise
+        del old.__dict__[name]
     loaded = pickle.loads(pickle.dumps(old))
     assert np.array_equal(loaded.bias(), np.zeros((3, 2)))
+    assert np.isnan(loaded.projection_noise()).all()
+    loaded.observe(np.zeros((3, 2)))  # and it goes on
+    reporter = NoiseReporter(load_scenario("case2"))
+    del reporter.__dict__["net"]
+    assert pickle.loads(pickle.dumps(reporter)).net is False  # gross reports, as flown
 
 
 def test_detected_now_reads_the_last_step_of_the_assigned_targets():
