@@ -57,23 +57,27 @@ def test_a_net_report_leaves_out_the_detections_own_noise():
     # noise from the detections' second differences 0.0625 I, the net report 0.09 I.
     rng = np.random.default_rng(4)
     n = 20000
-    truth = (0.5 * DT * np.arange(n + 1))[:, None, None] * np.array([1.0, 0.4])
-    predictions = (truth[1:] + rng.normal(0, 0.3, (n, 1, 2)))[:, None]
-    detected = [truth + rng.normal(0, 0.25, truth.shape)]
-    _, gross = forecast_residual_reports(predictions, detected, rate=0.002)
-    _, net = forecast_residual_reports(predictions, detected, rate=0.002, net=True)
-    assert gross[-1, 0, 0] == pytest.approx(0.1525 * np.eye(2), abs=0.016)
-    assert net[-1, 0, 0] == pytest.approx(0.09 * np.eye(2), abs=0.012)
-    residual = ForecastResidual(1, rate=0.002)
-    for g in detected[0][:5000]:
-        residual.observe(g)
+    truth = (0.5 * DT * np.arange(n + 1))[:, None] * np.array([1.0, 0.4])  # (n + 1, 2)
+    predictions = truth[1:] + rng.normal(0, 0.3, (n, 2))
+    detected = truth + rng.normal(0, 0.25, truth.shape)
+    residual, sharp = ForecastResidual(1, rate=0.002), ForecastResidual(1, rate=0.002)
+    for k in range(n):
+        for estimate in (residual, sharp):
+            estimate.observe(detected[k][None])
+        if k == 2:  # three detections: the projection noise is known from now on
+            assert np.isfinite(residual.projection_noise()).all()
+        residual.predicted(predictions[k][None])
+        sharp.predicted((truth[k + 1] + rng.normal(0, 0.01, 2))[None])
+    assert residual.noise()[0] == pytest.approx(0.1525 * np.eye(2), abs=0.016)
     assert residual.projection_noise()[0] == pytest.approx(0.0625 * np.eye(2), abs=0.008)
-    # Before three consecutive detections the net report is the gross one; a drone whose
-    # detections are noisier than its predictions reports the floor, not a negative noise.
-    assert np.array_equal(net[1], gross[1], equal_nan=True)
-    sharp = (truth[1:] + rng.normal(0, 0.01, (n, 1, 2)))[:, None]
-    _, floored = forecast_residual_reports(sharp, detected, rate=0.002, net=True)
-    assert np.linalg.eigvalsh(floored[-1, 0, 0]).min() == pytest.approx(REPORT_FLOOR)
+    assert residual.noise(net=True)[0] == pytest.approx(0.09 * np.eye(2), abs=0.012)
+    # A drone whose detections are noisier than its predictions reports the floor, not a
+    # negative noise.
+    assert np.linalg.eigvalsh(sharp.noise(net=True)[0]).min() == pytest.approx(REPORT_FLOOR)
+    # Before three consecutive detections the net report is the gross one.
+    _, gross = forecast_residual_reports(predictions[:3, None, None], [detected[:4, None]])
+    _, net = forecast_residual_reports(predictions[:3, None, None], [detected[:4, None]], net=True)
+    assert np.array_equal(net[:2], gross[:2], equal_nan=True) and np.isfinite(gross[1]).all()
 
 
 def test_a_report_uses_only_what_the_drone_knew_when_it_sent_it():
