@@ -85,6 +85,18 @@ def _timeseries(scenario, log, path: Path, method: str) -> None:
         ax.set_ylabel(label)
         if log_scale:
             ax.set_yscale("log")
+    made = np.isfinite(errors)
+    if (made & ~log.sent).any():  # --detected-only: the error of what reached the cloud too
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            sent_error = np.nanmean(np.where(log.sent, errors, np.nan), axis=(1, 2))
+        axes[0].plot(
+            t,
+            _running_mean(sent_error, window),
+            color="C2",
+            lw=1.2,
+            label="5 s mean, sent to the cloud",
+        )
     if log.fl_steps:
         axes[0].plot([], [], color="C3", ls="--", label="FL round")
     axes[0].legend(loc="upper right", fontsize=8)
