@@ -170,17 +170,23 @@ def demo(
         )
         results.append(run_episode(config))
     typer.echo(comparison(results))
-    typer.echo(
-        f"setting: --config {RECOMMENDED['preset']} --label-drones {RECOMMENDED['label_drones']}"
-        f" --epochs {RECOMMENDED['epochs']} --noise-split {RECOMMENDED['noise_split']}"
-        f"{' --correct-bias' if RECOMMENDED['correct_bias'] else ''}"
-        f"{' --detected-only' if RECOMMENDED['detected_only'] else ''}"
-        f"{' --net-reports' if RECOMMENDED.get('net_reports') else ''} (chosen on tuning seeds"
-        " 10-11; README, Table I)"
-    )
+    typer.echo(f"setting: {_as_flags(RECOMMENDED)} (chosen on tuning seeds 10-11; README, Table I)")
     typer.echo(
         f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"
     )
+
+
+def _as_flags(setting: dict[str, str | int | bool]) -> str:
+    """``TrackConfig`` fields as the ``track`` options that set them (``preset`` is
+    ``--config``; a true flag alone, a false one left out)."""
+    flags = []
+    for name, value in setting.items():
+        flag = "--" + {"preset": "config"}.get(name, name).replace("_", "-")
+        if value is True:
+            flags.append(flag)
+        elif value is not False:
+            flags.append(f"{flag} {value}")
+    return " ".join(flags)
 
 
 RoundsOption = Annotated[int, typer.Option("--rounds", help="Global FL rounds.")]

@@ -21,6 +21,19 @@ from dronefl.results import load_result, save_result
 from dronefl.tracking.set_distances import SetDistances
 
 
+def all_sent(prediction: np.ndarray) -> np.ndarray:
+    """``(K, M, N)`` bool: every finite prediction of ``prediction`` ``(K, M, N, 2)`` m, the
+    ``sent`` mask of an episode whose drones withheld nothing (and of one recorded before the
+    mask existed)."""
+    return np.isfinite(prediction).all(axis=-1)
+
+
+def received_predictions(prediction: np.ndarray, sent: np.ndarray) -> np.ndarray:
+    """The predictions ``(K, M, N, 2)`` m as the cloud received them: NaN where ``sent``
+    ``(K, M, N)`` is not set."""
+    return np.where(sent[..., None], prediction, np.nan)
+
+
 @dataclass
 class EpisodeLog:
     """Per-step arrays of an episode (index k is time ``k dt``); column j is target
@@ -45,18 +58,18 @@ class EpisodeLog:
 
     def __post_init__(self) -> None:
         if self.sent is None:
-            self.sent = np.isfinite(self.prediction).all(axis=-1)
+            self.sent = all_sent(self.prediction)
 
     def __setstate__(self, state: dict) -> None:
         """Unpickle, also a log saved before ``sent`` existed (every prediction was sent)."""
         if state.get("sent") is None:
-            state["sent"] = np.isfinite(state["prediction"]).all(axis=-1)
+            state["sent"] = all_sent(state["prediction"])
         self.__dict__.update(state)
 
     def sent_predictions(self) -> np.ndarray:
         """The predictions as the cloud received them, ``(K, M, N, 2)`` m, NaN where none
         was sent."""
-        return np.where(self.sent[..., None], self.prediction, np.nan)
+        return received_predictions(self.prediction, self.sent)
 
     @classmethod
     def empty(cls, scenario: Scenario, n_steps: int) -> EpisodeLog:

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from dronefl.config import Scenario, load_scenario
+from dronefl.experiments.episode import all_sent, received_predictions
 from dronefl.io import atomic_write_json, atomic_write_text
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
@@ -64,7 +65,7 @@ class Episode:
 
     def __post_init__(self) -> None:
         if self.sent is None:
-            object.__setattr__(self, "sent", np.isfinite(self.prediction).all(axis=-1))
+            object.__setattr__(self, "sent", all_sent(self.prediction))
 
 
 def load_episode(folder: str | Path) -> Episode:
@@ -249,27 +250,30 @@ def episode_records(episode: Episode) -> list:
     return checkpoint.records
 
 
-def withhold_undetected(episode: Episode) -> Episode:
+def withhold_undetected(episode: Episode, records: list | None = None) -> Episode:
     """``episode`` with only the predictions made while the drone detected the target marked
-    sent, as ``track --detected-only`` sends them (from the records in ``checkpoint.pkl``)."""
+    sent, as ``track --detected-only`` sends them (from ``records``, default: those in
+    ``checkpoint.pkl``, :func:`episode_records`)."""
     steps = len(episode.prediction)
-    detected = np.stack([r.detected[:steps] for r in episode_records(episode)], axis=1)
+    records = episode_records(episode) if records is None else records
+    detected = np.stack([r.detected[:steps] for r in records], axis=1)
     return replace(episode, sent=episode.sent & detected)
 
 
 def drone_reports(
-    episode: Episode, correct_bias: bool = False, net: bool = False
+    episode: Episode, correct_bias: bool = False, net: bool = False, records: list | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The predictions each drone would have sent, ``(K, M, N, 2)`` m (less its bias estimate
     with ``correct_bias``; NaN where it sent none), and the noise it would have sent with each
     (:mod:`dronefl.tracking.reports`; net of its projection noise with ``net`` or for an episode
     flown so), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
     and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
-    plane at half the vehicle's height."""
+    plane at half the vehicle's height; ``records`` as :func:`withhold_undetected`'s."""
     camera, ground_z = ground_plane(episode.scenario)
+    records = episode_records(episode) if records is None else records
     detected = [
         record_ground_positions(camera, record, ground_z, slice(0, record.steps))
-        for record in episode_records(episode)
+        for record in records
     ]
     return forecast_residual_reports(
         sent_predictions(episode),
@@ -281,7 +285,7 @@ def drone_reports(
 
 def sent_predictions(episode: Episode) -> np.ndarray:
     """The predictions that reached the cloud, ``(K, M, N, 2)`` m (NaN where none did)."""
-    return np.where(episode.sent[..., None], episode.prediction, np.nan)
+    return received_predictions(episode.prediction, episode.sent)
 
 
 def replay(
@@ -306,11 +310,13 @@ def replay(
             f"{episode.path}: its predictions were corrected in flight already; replay it "
             "without --correct-bias"
         )
+    rebuilt = config.noise_split == "reported" or correct_bias  # from the drones' records
+    records = episode_records(episode) if detected_only or rebuilt else None  # read once
     if detected_only:
-        episode = withhold_undetected(episode)
+        episode = withhold_undetected(episode, records)
     reports = None
-    if config.noise_split == "reported" or correct_bias:
-        sent, reports = drone_reports(episode, correct_bias, net_reports)
+    if rebuilt:
+        sent, reports = drone_reports(episode, correct_bias, net_reports, records)
         episode = replace(episode, prediction=sent)
         if config.noise_split != "reported":
             reports = None

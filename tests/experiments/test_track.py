@@ -9,6 +9,7 @@ import pytest
 import torch
 from PIL import Image
 
+from dronefl.cli import _as_flags
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
@@ -211,6 +212,10 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
         recommended.detected_only,
     ) == ("metric-scaffold", "others", 1, "reported", True, True)
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
+    assert _as_flags(RECOMMENDED) == (  # what `dronefl demo` prints under its table
+        "--config metric-scaffold --label-drones others --epochs 1 --noise-split reported "
+        "--correct-bias --detected-only"
+    )
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
