@@ -170,7 +170,10 @@ def demo(
         )
         results.append(run_episode(config))
     typer.echo(comparison(results))
-    typer.echo(f"setting: {_as_flags(RECOMMENDED)} (chosen on tuning seeds 10-11; README, Table I)")
+    typer.echo(
+        f"setting: recommended ({_as_flags(RECOMMENDED)}; chosen on tuning seeds 10-11; "
+        "README, Table I)"
+    )
     typer.echo(
         f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"
     )
@@ -219,7 +222,7 @@ CaseOption = Annotated[
     int | None, typer.Option("--case", help="Paper case 1, 2 or 3 (same as --scenario caseN).")
 ]
 PresetOption = Annotated[
-    str,
+    str | None,
     typer.Option(
         "--config",
         help="Training setting: ours (the closed loop's) | paper (E=10, Adam 1e-3) | metric "
@@ -563,14 +566,14 @@ PretrainedOption = Annotated[
     Path, typer.Option(help="Cache of pretrained models.", callback=writable_folder)
 ]
 LabelsOption = Annotated[
-    str,
+    str | None,
     typer.Option(
         "--labels", help="Training labels: smoothed (fused tracks, RTS) | filtered | ground_truth."
     ),
 ]
-FusionOption = Annotated[str, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
+FusionOption = Annotated[str | None, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
 NoiseSplitOption = Annotated[
-    str,
+    str | None,
     typer.Option(
         "--noise-split",
         help="adaptive | reported: the drones send their own noise estimates, by which the "
@@ -578,17 +581,17 @@ NoiseSplitOption = Annotated[
     ),
 ]
 CorrectBiasOption = Annotated[
-    bool,
+    bool | None,
     typer.Option(
-        "--correct-bias",
+        "--correct-bias/--no-correct-bias",
         help="Each drone subtracts the running mean of its forecast residual (prediction "
         "against its next detection, back-projected) from the predictions it sends.",
     ),
 ]
 DetectedOnlyOption = Annotated[
-    bool,
+    bool | None,
     typer.Option(
-        "--detected-only",
+        "--detected-only/--no-detected-only",
         help="Each drone sends a target's prediction only at the steps it detects that target "
         "(it still predicts the others; they count in the prediction error).",
     ),
@@ -612,7 +615,7 @@ LrOption = Annotated[
     typer.Option("--lr", help="Learning rate of the model updates (default: the --config's)."),
 ]
 LabelDronesOption = Annotated[
-    str,
+    str | None,
     typer.Option(
         "--label-drones",
         help="Who learns from a label: all | others (another drone saw the target then) | "
@@ -634,6 +637,30 @@ PretrainSecondsOption = Annotated[
 ]
 
 
+SettingOption = Annotated[
+    str,
+    typer.Option(
+        "--setting",
+        help="Named closed-loop setting: recommended (make demo's, the default) | ours (the "
+        "paper's online setting on our model) | paper (the paper's system as written: its "
+        "training, filtered-track labels, plain adaptive EKF). It sets --config, --labels, "
+        "--fusion, --label-drones, --epochs, --noise-split, --correct-bias and "
+        "--detected-only; each of them given beside it wins.",
+    ),
+]
+
+
+def _setting(setting: str, **chosen: str | int | bool | None) -> dict:
+    """The fields of named ``setting`` with the options given on the command line (not
+    ``None``) in their place (:func:`dronefl.experiments.track.setting_fields`)."""
+    from dronefl.experiments.track import setting_fields
+
+    try:
+        return setting_fields(setting, **chosen)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
+
+
 def _track_config(**kwargs: object) -> TrackConfig:
     from dronefl.experiments.track import TrackConfig
 
@@ -652,16 +679,17 @@ def track(
     env: Annotated[str, typer.Option("--env", help="Deployment environment.")] = "orchard",
     detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
-    labels: LabelsOption = "smoothed",
-    label_drones: LabelDronesOption = "all",
+    setting: SettingOption = "recommended",
+    labels: LabelsOption = None,
+    label_drones: LabelDronesOption = None,
     deshrink_labels: DeshrinkOption = False,
-    fusion: FusionOption = "robust",
-    noise_split: NoiseSplitOption = "adaptive",
-    correct_bias: CorrectBiasOption = False,
-    detected_only: DetectedOnlyOption = False,
+    fusion: FusionOption = None,
+    noise_split: NoiseSplitOption = None,
+    correct_bias: CorrectBiasOption = None,
+    detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
-    preset: PresetOption = "ours",
+    preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
     weights_dtype: WeightsDtypeOption = "float32",
@@ -676,6 +704,8 @@ def track(
 
     Writes metrics.json, episode.npz, trajectories.png, timeseries.png and episode.gif, and a
     checkpoint.pkl after every FL period (--resume continues a killed episode from it).
+    --setting recommended (the default, make demo's) | ours | paper names every knob at once;
+    options given beside it win (e.g. --setting paper --fusion robust).
     Example: dronefl track --scenario case2 --method dronefl --seed 0 --duration 600 --out runs/c2
     """
     from dronefl.experiments.track import run_episode
@@ -693,17 +723,20 @@ def track(
         environment=env,
         detector=detector,
         fl_period=fl_period,
-        labels=labels,
-        label_drones=label_drones,
+        **_setting(
+            setting,
+            preset=preset,
+            labels=labels,
+            fusion=fusion,
+            label_drones=label_drones,
+            epochs=epochs,
+            noise_split=noise_split,
+            correct_bias=correct_bias,
+            detected_only=detected_only,
+        ),  # fmt: skip
         deshrink_labels=deshrink_labels,
-        fusion=fusion,
-        noise_split=noise_split,
-        correct_bias=correct_bias,
-        detected_only=detected_only,
         net_reports=net_reports,
         past_steps=past_steps,
-        preset=preset,
-        epochs=epochs,
         lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained,
@@ -742,7 +775,9 @@ def _scenario_list(text: str, option: str) -> tuple[Scenario, ...]:
 
 @app.command()
 def table1(
-    seeds: Annotated[str, typer.Option("--seeds", help="Seeds, e.g. '0 1 2' or 0,1,2.")] = "0 1 2",
+    seeds: Annotated[
+        str, typer.Option("--seeds", help="Seeds, e.g. '0 1 2 3 4' or 0,1,2.")
+    ] = "0 1 2 3 4",
     scenarios: Annotated[
         str, typer.Option("--scenarios", help="Scenario names or YAML paths, e.g. 'case1 case2'.")
     ] = "case1 case2 case3",
@@ -759,15 +794,16 @@ def table1(
         str, typer.Option(help="projection|yolo (yolo: every drone's frame rendered each step).")
     ] = "projection",
     fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
-    labels: LabelsOption = "smoothed",
-    label_drones: LabelDronesOption = "all",
+    setting: SettingOption = "recommended",
+    labels: LabelsOption = None,
+    label_drones: LabelDronesOption = None,
     deshrink_labels: DeshrinkOption = False,
-    fusion: FusionOption = "robust",
-    noise_split: NoiseSplitOption = "adaptive",
-    correct_bias: CorrectBiasOption = False,
-    detected_only: DetectedOnlyOption = False,
+    fusion: FusionOption = None,
+    noise_split: NoiseSplitOption = None,
+    correct_bias: CorrectBiasOption = None,
+    detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
-    preset: PresetOption = "ours",
+    preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
     weights_dtype: WeightsDtypeOption = "float32",
@@ -791,10 +827,14 @@ def table1(
     for method in chosen:
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
-        scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period, labels=labels,
-        label_drones=label_drones, deshrink_labels=deshrink_labels, fusion=fusion,
-        noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
-        net_reports=net_reports, preset=preset, epochs=epochs, lr=lr, weights_dtype=weights_dtype,
+        scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period,
+        **_setting(
+            setting, preset=preset, labels=labels, fusion=fusion, label_drones=label_drones,
+            epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
+            detected_only=detected_only,
+        ),
+        deshrink_labels=deshrink_labels, net_reports=net_reports, lr=lr,
+        weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,
     )  # fmt: skip
@@ -814,7 +854,7 @@ def pretrain(
     rounds: Annotated[int, typer.Option(min=1, help="FL rounds / centralized epochs x10.")] = 20,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
-    preset: PresetOption = "ours",
+    preset: PresetOption = "metric-scaffold",
     image: Annotated[
         bool,
         typer.Option(
@@ -828,7 +868,7 @@ def pretrain(
     centralized model on pooled data; with --image the paper's image model on the rendered
     frames), L_p -> L_f = 1, and print each model's prediction error (MSE, m^2) per drone on
     the held-out last 20 % of the recording. `track` does this on demand (with the same
-    --config).
+    --config; the default is the recommended setting's, metric-scaffold).
 
     Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
     """
@@ -1202,32 +1242,42 @@ def deploy_up(
     base_port: Annotated[int, typer.Option(help="First of the deployment's ports.")] = 7440,
     deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
     start_timeout: StartTimeoutOption = 120.0,
-    preset: PresetOption = "ours",
+    setting: SettingOption = "recommended",
+    preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
     restart_drones: Annotated[bool, typer.Option(help="Restart a drone that dies.")] = False,
     pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
         "runs/pretrained"
     ),
-    label_drones: LabelDronesOption = "all",
+    label_drones: LabelDronesOption = None,
     deshrink_labels: DeshrinkOption = False,
-    noise_split: NoiseSplitOption = "adaptive",
-    correct_bias: CorrectBiasOption = False,
-    detected_only: DetectedOnlyOption = False,
+    noise_split: NoiseSplitOption = None,
+    correct_bias: CorrectBiasOption = None,
+    detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
     separate processes on 127.0.0.1; writes metrics.json and logs/ (one log per process).
-    --config, --epochs and --lr are `dronefl track`'s: the crop-field pretraining and every
-    round (SCAFFOLD's control variates included) follow the --config.
+    --setting, --config, --epochs and --lr are `dronefl track`'s: the crop-field pretraining
+    and every round (SCAFFOLD's control variates included) follow the --config. The deployed
+    cloud fuses with the robust EKF and smoothed labels, so --setting paper is refused.
 
-    Example: dronefl deploy up --scenario case2 --duration 600 --fl-period 100 --config
-    metric-scaffold --label-drones lower --epochs 1 --noise-split reported --out runs/deploy
+    Example: dronefl deploy up --scenario case2 --duration 600 --fl-period 100 --out runs/deploy
     """
     from dronefl.deploy.launcher import DeployConfig, run_deploy
 
     check_choice(env, ENVIRONMENTS, "--env")
+    chosen = _setting(
+        setting, preset=preset, label_drones=label_drones, epochs=epochs,
+        noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
+    )  # fmt: skip
+    if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
+        raise fail(
+            f"--setting {setting}: the deployed cloud has the robust fusion and smoothed labels "
+            "only; use recommended or ours"
+        )
     with _deploy_errors():
         config = DeployConfig(
             scenario=scenario,
@@ -1242,17 +1292,12 @@ def deploy_up(
             base_port=base_port,
             deadline_ms=deadline_ms,
             start_timeout=start_timeout,
-            preset=preset,
-            epochs=epochs,
             lr=lr,
             pretrained=pretrained,
             restart_drones=restart_drones,
-            label_drones=label_drones,
             deshrink_labels=deshrink_labels,
-            noise_split=noise_split,
-            correct_bias=correct_bias,
-            detected_only=detected_only,
             net_reports=net_reports,
+            **chosen,
         )
         metrics = run_deploy(config)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)

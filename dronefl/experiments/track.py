@@ -123,6 +123,46 @@ RECOMMENDED: dict[str, str | int | bool] = {
     "detected_only": True,
 }
 
+#: The :class:`TrackConfig` fields a named setting (``--setting``) fills in.
+SETTING_FIELDS: tuple[str, ...] = (
+    "preset", "labels", "fusion", "label_drones", "epochs", "noise_split", "correct_bias",
+    "detected_only",
+)  # fmt: skip
+#: Named closed-loop settings (``track``/``table1``/``deploy up --setting``), every field of
+#: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's). ``recommended`` is
+#: :data:`RECOMMENDED` (``make demo``'s, the CLI's default); ``ours`` the :class:`TrackConfig`
+#: defaults (our first closed loop: the ``ours`` model with the paper's online setting, every
+#: drone learning every label, E = 10); ``paper`` the paper's system as written: its model
+#: and training (E = 10, Adam 1e-3, Eq. 6 AdaIN), the filtered fused tracks as labels and its
+#: plain adaptive EKF.
+SETTINGS: dict[str, dict[str, str | int | bool | None]] = {
+    "recommended": {"labels": "smoothed", "fusion": "robust", **RECOMMENDED},
+    "ours": {
+        "preset": "ours", "labels": "smoothed", "fusion": "robust", "label_drones": "all",
+        "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
+    },
+    "paper": {
+        "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
+        "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
+    },
+}  # fmt: skip
+
+
+def setting_fields(setting: str, **chosen: str | int | bool | None) -> dict:
+    """The :data:`SETTING_FIELDS` of named ``setting`` (a key of :data:`SETTINGS`), each
+    replaced by its value in ``chosen`` where that is not ``None`` (an option given on the
+    command line wins over the setting); raises ``ValueError`` naming ``--setting`` or the
+    unknown field."""
+    if setting not in SETTINGS:
+        raise ValueError(f"--setting: {setting!r} is not one of {', '.join(SETTINGS)}")
+    unknown = sorted(set(chosen) - set(SETTING_FIELDS))
+    if unknown:
+        raise ValueError(f"setting_fields: {', '.join(unknown)} not a setting field")
+    return {
+        name: SETTINGS[setting][name] if chosen.get(name) is None else chosen[name]
+        for name in SETTING_FIELDS
+    }
+
 
 @dataclass(frozen=True)
 class TrackConfig:

@@ -49,7 +49,8 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
 ):
     out = tmp_path / "deploy"
     command = cli(
-        "deploy", "up", "--scenario", "case2", "--env", "crop_field", "--seed", "3",
+        "deploy", "up", "--setting", "ours", "--scenario", "case2", "--env", "crop_field",
+        "--seed", "3",
         "--duration", "60", "--fl-period", "25", "--config", "metric-scaffold", "--epochs", "1",
         "--label-drones", "lower", "--deshrink-labels", "--base-port", str(free_port_block()),
         "--out", str(out),

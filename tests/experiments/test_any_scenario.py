@@ -15,7 +15,7 @@ from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.fl_offline import OfflineResults
 from dronefl.experiments.table1 import METRICS, TABLE1_METHODS, run_table1
-from dronefl.experiments.track import TrackConfig
+from dronefl.experiments.track import TrackConfig, setting_fields
 
 #: Table I's methods with the projection detector (the image baseline flies on frames only).
 TRACK_METHODS = TABLE1_METHODS["projection"]
@@ -97,8 +97,9 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     out = table_dir / "table"
     before = {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")}
     base = TrackConfig(
-        scenario=load_scenario(SCENARIO), out=out, duration=18.0, fl_period=8.0, epochs=1,
+        scenario=load_scenario(SCENARIO), out=out, duration=18.0, fl_period=8.0,
         pretrained=table_dir / "pretrained", pretrain_rounds=2, pretrain_seconds=20.0,
+        **setting_fields("recommended", epochs=1),  # what `track` flew: its default setting
     )  # fmt: skip
 
     episodes = run_table1(base, (base.scenario,), TRACK_METHODS, seeds=(0,))

@@ -16,8 +16,8 @@ from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 from dronefl.experiments.replay import load_episode, replay, replay_config
 from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
 
-ARGS = ["--scenario", "case2", "--method", "fixed", "--noise-split", "reported",
-        "--correct-bias", "--detected-only", "--duration", "21", "--fl-period", "7",
+ARGS = ["--setting", "ours", "--scenario", "case2", "--method", "fixed", "--noise-split",
+        "reported", "--correct-bias", "--detected-only", "--duration", "21", "--fl-period", "7",
         "--no-animate"]  # fmt: skip
 WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
 

@@ -20,8 +20,9 @@ from cli_child import run_cli
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 
 DURATION = 21.0
-TRACK = ["track", "--scenario", "case1", "--duration", str(DURATION), "--fl-period", "7",
-         "--no-animate"]  # fmt: skip
+#: ``--setting ours``: every drone learns every label, so Case 1 (one drone per target) has rounds.
+TRACK = ["track", "--setting", "ours", "--scenario", "case1", "--duration", str(DURATION),
+         "--fl-period", "7", "--no-animate"]  # fmt: skip
 #: metrics.json fields that are wall-clock times (each FL round's ``seconds`` too).
 WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
 #: How much a round's message may differ in size from the uninterrupted run's, B: the engine

@@ -22,9 +22,9 @@ from dronefl.models.image import FrameTransformer
 from dronefl.models.model import build_model, count_parameters, predictor_config
 from dronefl.perception import make_detector
 
-TRACK = ["track", "--scenario", "case1", "--method", "centralized-image", "--detector", "yolo",
-         "--duration", "10", "--fl-period", "5", "--epochs", "1", "--env", "crop_field",
-         "--no-animate"]  # fmt: skip
+TRACK = ["track", "--setting", "ours", "--scenario", "case1", "--method", "centralized-image",
+         "--detector", "yolo", "--duration", "10", "--fl-period", "5", "--epochs", "1", "--env",
+         "crop_field", "--no-animate"]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
