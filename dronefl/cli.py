@@ -1229,7 +1229,7 @@ def cloud(
 
 @deploy_app.command("up")
 def deploy_up(
-    scenario: ScenarioOption = "case1",
+    scenario: ScenarioOption = "case2",
     method: Annotated[str, typer.Option(help="dronefl|fixed")] = "dronefl",
     duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
     fl_period: Annotated[float, typer.Option(help="Simulated s between FL rounds.")] = 40.0,
