@@ -113,7 +113,8 @@ NOT_SETTINGS: tuple[str, ...] = ("out", "progress", "animate", "resume")
 #: fell 0.7 % / 1.3 % / 7.9 % in Cases 1 / 2 / 3, its tracking distance 0.5 % / 1.2 % / 0.3 %
 #: and its fused-track error 0.8 % / 47 % / 3.6 % (README, "The drones send what they see").
 #: The :class:`TrackConfig` defaults stay ``ours`` with the paper's online setting (``all``,
-#: E = 10), the adaptive split, no correction and every prediction sent.
+#: E = 10), the adaptive split, no correction and every prediction sent (:data:`SETTINGS`'
+#: ``ours``); the command line flies ``recommended`` unless told (``--setting``).
 RECOMMENDED: dict[str, str | int | bool] = {
     "preset": "metric-scaffold",
     "label_drones": "others",
