@@ -604,6 +604,14 @@ NetReportsOption = Annotated[
         "detections' own projection noise (estimated from their second differences).",
     ),
 ]
+TrackPsdOption = Annotated[
+    float | None,
+    typer.Option(
+        "--track-psd",
+        help="Process noise q (m^2/s^3) of a second filter whose tracks the planner flies on; "
+        "the labels keep the fusion's (default: one filter for both).",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -688,6 +696,7 @@ def track(
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
+    track_psd: TrackPsdOption = None,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
@@ -736,6 +745,7 @@ def track(
         ),  # fmt: skip
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
+        track_psd=track_psd,
         past_steps=past_steps,
         lr=lr,
         weights_dtype=weights_dtype,
@@ -803,6 +813,7 @@ def table1(
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
+    track_psd: TrackPsdOption = None,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -833,7 +844,7 @@ def table1(
             epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
             detected_only=detected_only,
         ),
-        deshrink_labels=deshrink_labels, net_reports=net_reports, lr=lr,
+        deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
         pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
         out=out,

@@ -206,6 +206,7 @@ BAD_OPTIONS = [
     "table1 --detector nope",
     "table1 --setting nope",
     "track --setting nope",
+    "track --track-psd 0",
     "deploy up --setting paper",
     "image-baseline --epochs 0",
     "cloud --model FILE --config nope",

@@ -62,6 +62,8 @@ class LoopCheckpoint:
     ``planner_seconds``, ``fl_seconds`` and ``wall_seconds`` are the wall time (s) spent so far
     planning, updating models and in all, over every process that ran the episode.
     ``reporters``: each drone's noise estimate (``None`` unless the fusion uses reports).
+    ``label_fuser``: the labels' own filter (``None`` unless ``TrackConfig.track_psd`` gives
+    the tracks another one; ``fuser`` is then the tracks').
     """
 
     settings: dict[str, str | int | float | bool]
@@ -82,6 +84,7 @@ class LoopCheckpoint:
     wall_seconds: float
     reporters: list[NoiseReporter] | None = None
     format: str = CHECKPOINT_FORMAT
+    label_fuser: Fuser | None = None
 
 
 def save_loop_checkpoint(path: Path, checkpoint: LoopCheckpoint) -> Path:

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -191,7 +192,10 @@ class TrackConfig:
     coasts the track over them, :func:`~dronefl.tracking.reports.detected_now`);
     ``net_reports`` (with ``noise_split = "reported"``): the drones report their noise net of
     their own detections' projection noise (:meth:`~dronefl.tracking.reports.ForecastResidual.
-    noise`);
+    noise`); ``track_psd`` (m^2/s^3): the process noise q of a second filter per target, fed
+    the same measurements, whose tracks the planner flies on and the log records, while the
+    labels are smoothed from the fusion's own (a larger q lags the targets less; the smoother
+    wants the smaller q); ``None``: one filter for both;
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -221,6 +225,7 @@ class TrackConfig:
     correct_bias: bool = False
     detected_only: bool = False
     net_reports: bool = False
+    track_psd: float | None = None
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -259,6 +264,8 @@ class TrackConfig:
             raise ValueError("--noise-split reported: needs --fusion robust")
         if self.net_reports and self.noise_split != "reported":
             raise ValueError("--net-reports: needs --noise-split reported")
+        if self.track_psd is not None and not (0 < self.track_psd < math.inf):
+            raise ValueError(f"--track-psd: must be a positive number, got {self.track_psd}")
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "
@@ -311,6 +318,8 @@ class TrackConfig:
             del values["detected_only"]
         if not self.net_reports:  # as every episode flown before the option (12-05)
             del values["net_reports"]
+        if self.track_psd is None:  # as every episode flown before the option (12-05)
+            del values["track_psd"]
         values["fusion_config"] = json.dumps(fusion, sort_keys=True)
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
@@ -319,6 +328,14 @@ class TrackConfig:
         method (:func:`~dronefl.tracking.fusion_config`) with ``noise_split``."""
         config = fusion_config(self.scenario, self.fusion)
         return dataclasses.replace(config, noise_split=self.noise_split)
+
+    def track_fusion_config(self) -> FusionConfig:
+        """The settings of the filter whose tracks the planner flies on: :meth:`fusion_config`
+        with q = ``track_psd`` (the same when that is ``None``)."""
+        config = self.fusion_config()
+        if self.track_psd is None:
+            return config
+        return dataclasses.replace(config, acceleration_psd=self.track_psd)
 
     def settings(self) -> dict[str, str | int | float | bool]:
         """The settings that change the episode's results (:meth:`describe` without
@@ -436,7 +453,11 @@ class ClosedLoop:
             self.detector = CloudVisionDetector.for_world(self.world)
         else:
             self.detector = parts.detector(config.detector, self.world)
-        self.fuser = parts.fuser(scenario, config.fusion_config())
+        # The planner's tracks; with ``track_psd`` the labels have a filter of their own.
+        self.fuser = parts.fuser(scenario, config.track_fusion_config())
+        self.label_fuser: Fuser | None = None
+        if config.track_psd is not None:
+            self.label_fuser = parts.fuser(scenario, config.fusion_config())
         self.planner = parts.planner(scenario)
         self.counter = ByteCounter()
         self.n_steps = int(round(config.duration * scenario.rate_hz))
@@ -478,6 +499,7 @@ class ClosedLoop:
             fl_seconds=self.fl_seconds,
             wall_seconds=wall_seconds,
             reporters=self.reporters,
+            label_fuser=self.label_fuser,
         )
 
     def _restore(self, saved: LoopCheckpoint) -> None:
@@ -488,7 +510,7 @@ class ClosedLoop:
         self.learner.restore(saved.learner)
         self.predictors = {d: self._predictor(s) for d, s in saved.predictors.items()}
         self.planner_seconds, self.fl_seconds = saved.planner_seconds, saved.fl_seconds
-        self.reporters = saved.reporters
+        self.reporters, self.label_fuser = saved.reporters, saved.label_fuser
 
     def step(self, k: int) -> None:
         """Step ``k``: detect -> predict -> send -> fuse -> plan -> send -> step."""
@@ -507,6 +529,8 @@ class ClosedLoop:
                 self._send_raw_inputs(k, record, odometry.vector, detections)
             measurements += self._predict(k, i, record)
         tracks = self.fuser.update(self.world.t + self.world.dt, measurements)
+        if self.label_fuser is not None:
+            self.label_fuser.update(self.world.t + self.world.dt, measurements)
         self._record_tracks(k, tracks)
         started = time.perf_counter()
         plan = self.planner.plan(self.world.drone_states(), self.fuser.forecast(self.world.dt))
@@ -663,7 +687,8 @@ class ClosedLoop:
         drone learns from which; de-shrunk with ``--deshrink-labels``), and the pull of the
         predictions so far (:func:`dronefl.tracking.labels.estimate_pull`)."""
         truth = self.log.target_position[:steps]
-        labels = make_labels(self.config.labels, self.fuser, self.log.t[:steps], truth=truth)
+        fuser = self.fuser if self.label_fuser is None else self.label_fuser
+        labels = make_labels(self.config.labels, fuser, self.log.t[:steps], truth=truth)
         altitudes = [d.altitude for d in self.scenario.drones]
         return training_labels(
             labels.position, self.log.sent_predictions(), self.log.drone_position, altitudes,

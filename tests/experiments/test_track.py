@@ -221,3 +221,33 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
     assert default.noise_split == "adaptive" and not default.correct_bias
     assert not default.detected_only
+
+
+@pytest.mark.slow
+def test_a_second_filter_flies_the_tracks_and_the_labels_keep_their_own(quick_pretrained, tmp_path):
+    config = TrackConfig(
+        scenario=load_scenario("case1"), method="fixed", seed=3, duration=12.0,
+        environment="crop_field", runtime="torch", pretrained=quick_pretrained, out=tmp_path,
+        progress=False, animate=False, track_psd=10.0,
+    )  # fmt: skip
+    run_episode(config)
+
+    with (tmp_path / CHECKPOINT_NAME).open("rb") as handle:
+        saved = pickle.load(handle)
+    tracks, labels = saved.fuser, saved.label_fuser
+    # The planner's filter has q = 10; the labels' is the fusion's own, fed the same stream.
+    assert tracks.config == replace(config.fusion_config(), acceleration_psd=10.0)
+    assert labels.config == config.fusion_config() and labels.config.acceleration_psd != 10.0
+    assert labels.measurements == tracks.measurements > 0
+    with np.load(tmp_path / "episode.npz") as episode:
+        logged = episode["track_position"]
+    for j, target in enumerate(config.scenario.target_ids):
+        mine, theirs = tracks.history(target), labels.history(target)
+        np.testing.assert_array_equal(mine.t, theirs.t)
+        # The episode logs the planner's tracks: the last one is the q = 10 filter's.
+        np.testing.assert_allclose(logged[-1, j], mine.mean[-1, :2], rtol=0, atol=1e-12)
+        assert np.abs(mine.mean[:, :2] - theirs.mean[:, :2]).max() > 1e-3
+    assert config.describe()["track_psd"] == 10.0
+    assert "track_psd" not in replace(config, track_psd=None).describe()  # old episodes reuse
+    with pytest.raises(ValueError, match="--track-psd"):
+        replace(config, track_psd=0.0)
