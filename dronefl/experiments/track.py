@@ -79,6 +79,7 @@ from dronefl.tracking import (
     FusionConfig,
     PositionMeasurement,
     Track,
+    TrackForecast,
     fusion_config,
     make_labels,
     set_distances,
@@ -533,10 +534,25 @@ class ClosedLoop:
             self.label_fuser.update(self.world.t + self.world.dt, measurements)
         self._record_tracks(k, tracks)
         started = time.perf_counter()
-        plan = self.planner.plan(self.world.drone_states(), self.fuser.forecast(self.world.dt))
+        plan = self.planner.plan(self.world.drone_states(), self._forecast())
         self.planner_seconds += time.perf_counter() - started
         self.log.cost[k] = plan.cost.total
         self.world.step(self._send_controls(k, plan))
+
+    def _forecast(self) -> TrackForecast:
+        """The planner's view of the targets one step ahead: the tracks' forecast; with a
+        second filter (``track_psd``) its positions, with the covariances and noises of the
+        fusion's own filter, so that the uncertainty the planner trades against distance
+        stays the fusion's."""
+        fast = self.fuser.forecast(self.world.dt)
+        if self.label_fuser is None:
+            return fast
+        view = self.label_fuser.forecast(self.world.dt)
+        row = {target: k for k, target in enumerate(fast.target_ids)}
+        for k, target in enumerate(view.target_ids):
+            if target in row:
+                view.positions[k] = fast.positions[row[target]]
+        return view
 
     def period_ended(self, k: int) -> bool:
         """Whether an FL period ends after step ``k`` (none ends after the last step)."""
