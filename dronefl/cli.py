@@ -826,8 +826,9 @@ def table1(
     """Table I: every scenario x method x seed; markdown, CSV and a plot.
 
     Finished episodes (of the same settings, the detector included) are reused, so an
-    interrupted run resumes.
-    Example: dronefl table1 --seeds "0 1 2" --scenarios "case1 case2 case3" --out runs/table1
+    interrupted run resumes. --setting as `track`'s (default recommended; paper: the paper's
+    system as written).
+    Example: dronefl table1 --seeds "0 1 2 3 4" --scenarios "case1 case2 case3" --out runs/table1
     """
     from dronefl.experiments.table1 import TABLE1_METHODS, episode_configs, run_table1
     from dronefl.experiments.track import TRACK_METHODS
