@@ -742,7 +742,7 @@ def track(
             noise_split=noise_split,
             correct_bias=correct_bias,
             detected_only=detected_only,
-        ),  # fmt: skip
+        ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
         track_psd=track_psd,

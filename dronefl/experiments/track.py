@@ -534,24 +534,22 @@ class ClosedLoop:
             self.label_fuser.update(self.world.t + self.world.dt, measurements)
         self._record_tracks(k, tracks)
         started = time.perf_counter()
-        plan = self.planner.plan(self.world.drone_states(), self._forecast())
+        plan = self.planner.plan(self.world.drone_states(), self._forecast(tracks))
         self.planner_seconds += time.perf_counter() - started
         self.log.cost[k] = plan.cost.total
         self.world.step(self._send_controls(k, plan))
 
-    def _forecast(self) -> TrackForecast:
+    def _forecast(self, tracks: dict[int, Track]) -> TrackForecast:
         """The planner's view of the targets one step ahead: the tracks' forecast; with a
-        second filter (``track_psd``) its positions, with the covariances and noises of the
-        fusion's own filter, so that the uncertainty the planner trades against distance
-        stays the fusion's."""
-        fast = self.fuser.forecast(self.world.dt)
+        second filter (``track_psd``) the positions of ``tracks`` (the step's update of the
+        planner's filter), with the covariances and noises of the fusion's own filter, so
+        that the uncertainty the planner trades against distance stays the fusion's."""
         if self.label_fuser is None:
-            return fast
+            return self.fuser.forecast(self.world.dt)
         view = self.label_fuser.forecast(self.world.dt)
-        row = {target: k for k, target in enumerate(fast.target_ids)}
         for k, target in enumerate(view.target_ids):
-            if target in row:
-                view.positions[k] = fast.positions[row[target]]
+            if target in tracks:
+                view.positions[k] = tracks[target].position
         return view
 
     def period_ended(self, k: int) -> bool:

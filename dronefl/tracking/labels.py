@@ -166,12 +166,13 @@ def label_drones(
         raise ValueError(
             f"assigned: expected shape ({n_drones}, {n_targets}), got {np.shape(assigned)}"
         )
+    watches = None if assigned is None else np.asarray(assigned, dtype=bool)
     out = np.zeros((n_drones, n_steps, n_targets), dtype=bool)
     for i in range(n_drones):
         sources = np.arange(n_drones) != i
         if rule == "lower":
             sources &= altitudes < altitudes[i]
-        own = predicted[:, i] if assigned is None else np.asarray(assigned, dtype=bool)[i]
+        own = predicted[:, i] if watches is None else watches[i]
         out[i] = own & predicted[:, sources].any(axis=1)
     return out
 
