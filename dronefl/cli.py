@@ -148,7 +148,8 @@ def demo(
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones others --epochs 1
-    --noise-split reported --correct-bias --detected-only), for 600 s: seed 0 of the README's
+    --noise-split reported --correct-bias --detected-only --planner-distance rest), for 600 s:
+    seed 0 of the README's
     Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
@@ -612,6 +613,15 @@ TrackPsdOption = Annotated[
         "the labels keep the fusion's (default: one filter for both).",
     ),
 ]
+PlannerDistanceOption = Annotated[
+    str | None,
+    typer.Option(
+        "--planner-distance",
+        help="Where the planner's distance term measures a drone: next (the paper: its next "
+        "position) | rest (where it would come to rest relative to the target under full "
+        "braking, which ends orbiting).",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -697,6 +707,7 @@ def track(
     detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
+    planner_distance: PlannerDistanceOption = None,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
@@ -742,6 +753,7 @@ def track(
             noise_split=noise_split,
             correct_bias=correct_bias,
             detected_only=detected_only,
+            planner_distance=planner_distance,
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -814,6 +826,7 @@ def table1(
     detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
+    planner_distance: PlannerDistanceOption = None,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -843,7 +856,7 @@ def table1(
         **_setting(
             setting, preset=preset, labels=labels, fusion=fusion, label_drones=label_drones,
             epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
-            detected_only=detected_only,
+            detected_only=detected_only, planner_distance=planner_distance,
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1179,6 +1192,13 @@ def cloud(
             "--detected-only): a drone learns a label of a target it watches from the others.",
         ),
     ] = False,
+    planner_distance: Annotated[
+        str,
+        typer.Option(
+            "--planner-distance",
+            help="Where the planner measures a drone's distance: next (the paper) | rest.",
+        ),
+    ] = "next",
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1218,6 +1238,7 @@ def cloud(
             preset=preset,
             noise_split=noise_split,
             detected_only=detected_only,
+            planner_distance=planner_distance,
         )
         fl = closed_loop_settings(
             preset,
@@ -1268,6 +1289,7 @@ def deploy_up(
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
+    planner_distance: PlannerDistanceOption = None,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1284,6 +1306,7 @@ def deploy_up(
     chosen = _setting(
         setting, preset=preset, label_drones=label_drones, epochs=epochs,
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
+        planner_distance=planner_distance,
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

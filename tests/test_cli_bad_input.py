@@ -207,6 +207,7 @@ BAD_OPTIONS = [
     "table1 --setting nope",
     "track --setting nope",
     "track --track-psd 0",
+    "track --planner-distance later",
     "deploy up --setting paper",
     "image-baseline --epochs 0",
     "cloud --model FILE --config nope",

@@ -57,7 +57,7 @@ from dronefl.fl.records import ARRAYS_KEY, PRESETS, ROUND_KEY, FlSettings, Round
 from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
-from dronefl.planning import DroneFLPlanner
+from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
 from dronefl.tracking.fusion import NOISE_SPLITS
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
@@ -93,7 +93,9 @@ class CloudSettings:
     noise reports that follow each drone's predictions); ``detected_only``: the drones send
     only the predictions of targets they detect (``dronefl drone --detected-only``), so a
     drone's own condition in ``--label-drones`` is that it watches the target (as ``dronefl
-    track --detected-only``).
+    track --detected-only``); ``planner_distance`` where the planner measures a drone
+    (:attr:`~dronefl.planning.PlannerConfig.distance_at`, as ``dronefl track
+    --planner-distance``).
     """
 
     scenario: str
@@ -113,8 +115,14 @@ class CloudSettings:
     preset: str = "ours"
     noise_split: str = "adaptive"
     detected_only: bool = False
+    planner_distance: str = "next"
 
     def __post_init__(self) -> None:
+        if self.planner_distance not in DISTANCE_POINTS:
+            raise ValueError(
+                f"--planner-distance: {self.planner_distance!r} is not one of "
+                f"{', '.join(DISTANCE_POINTS)}"
+            )
         if self.preset not in PRESETS:
             raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         if self.noise_split not in NOISE_SPLITS:
@@ -194,7 +202,9 @@ class CloudEpisode:
         self.fl_every = int(round(settings.fl_period * s.rate_hz))
         fusion = replace(fusion_config(s), noise_split=settings.noise_split)
         self.fuser = Fuser(s.target_ids, s.drone_ids, fusion)
-        self.planner = DroneFLPlanner.from_scenario(s)
+        self.planner = DroneFLPlanner.from_scenario(
+            s, PlannerConfig(distance_at=settings.planner_distance)
+        )
         self.counter = ByteCounter()
         self.inbox = _Inbox()
         saved = load_model(Path(settings.model))

@@ -30,6 +30,7 @@ from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
 from dronefl.fl.records import PRESETS
+from dronefl.planning import DISTANCE_POINTS
 from dronefl.tracking.fusion import NOISE_SPLITS
 from dronefl.tracking.labels import LABEL_DRONES
 
@@ -64,6 +65,7 @@ class DeployConfig:
     correct_bias: bool = False
     detected_only: bool = False
     net_reports: bool = False
+    planner_distance: str = "next"
 
     def __post_init__(self) -> None:
         if self.noise_split not in NOISE_SPLITS:
@@ -90,6 +92,11 @@ class DeployConfig:
             raise ValueError(f"--epochs: must be >= 1, got {self.epochs}")
         if not 1024 <= self.base_port <= 65000:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
+        if self.planner_distance not in DISTANCE_POINTS:
+            raise ValueError(
+                f"--planner-distance: {self.planner_distance!r} is not one of "
+                f"{', '.join(DISTANCE_POINTS)}"
+            )
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -215,6 +222,7 @@ def _commands(
             *(["--deshrink-labels"] if config.deshrink_labels else []),
             "--noise-split", config.noise_split,
             *(["--detected-only"] if config.detected_only else []),
+            "--planner-distance", config.planner_distance,
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

@@ -68,7 +68,7 @@ from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.perception import make_detector
 from dronefl.perception.base import Detector
-from dronefl.planning import DroneFLPlanner
+from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
 from dronefl.planning.base import Plan, Planner
 from dronefl.progress import progress_bar
 from dronefl.sim.world import World
@@ -114,6 +114,11 @@ NOT_SETTINGS: tuple[str, ...] = ("out", "progress", "animate", "resume")
 #: (``detected_only``), chosen the same way: on tuning seeds 10-11 DroneFL's prediction error
 #: fell 0.7 % / 1.3 % / 7.9 % in Cases 1 / 2 / 3, its tracking distance 0.5 % / 1.2 % / 0.3 %
 #: and its fused-track error 0.8 % / 47 % / 3.6 % (README, "The drones send what they see").
+#: Since 2026-12-05 (evening) the planner measures the distance at each drone's rest point
+#: under full braking (``planner_distance = "rest"``), chosen the same way: on tuning seeds
+#: 10-11 it ended Case 1's orbiting drone (tracking distance -90 %) and DroneFL's prediction
+#: error fell 75 % / 7 % / 34 % in Cases 1 / 2 / 3, every seed (README, "The planner's rest
+#: point").
 #: The :class:`TrackConfig` defaults stay ``ours`` with the paper's online setting (``all``,
 #: E = 10), the adaptive split, no correction and every prediction sent (:data:`SETTINGS`'
 #: ``ours``); the command line flies ``recommended`` unless told (``--setting``).
@@ -124,12 +129,13 @@ RECOMMENDED: dict[str, str | int | bool] = {
     "noise_split": "reported",
     "correct_bias": True,
     "detected_only": True,
+    "planner_distance": "rest",
 }
 
 #: The :class:`TrackConfig` fields a named setting (``--setting``) fills in.
 SETTING_FIELDS: tuple[str, ...] = (
     "preset", "labels", "fusion", "label_drones", "epochs", "noise_split", "correct_bias",
-    "detected_only",
+    "detected_only", "planner_distance",
 )  # fmt: skip
 #: Named closed-loop settings (``track``/``table1``/``deploy up --setting``), every field of
 #: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's). ``recommended`` is
@@ -143,10 +149,12 @@ SETTINGS: dict[str, dict[str, str | int | bool | None]] = {
     "ours": {
         "preset": "ours", "labels": "smoothed", "fusion": "robust", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
+        "planner_distance": "next",
     },
     "paper": {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
+        "planner_distance": "next",
     },
 }  # fmt: skip
 
@@ -196,7 +204,10 @@ class TrackConfig:
     noise`); ``track_psd`` (m^2/s^3): the process noise q of a second filter per target, fed
     the same measurements, whose tracks the planner flies on and the log records, while the
     labels are smoothed from the fusion's own (a larger q lags the targets less; the smoother
-    wants the smaller q); ``None``: one filter for both;
+    wants the smaller q); ``None``: one filter for both; ``planner_distance`` where the
+    planner's distance term measures a drone (:attr:`~dronefl.planning.PlannerConfig.
+    distance_at`: ``next``, the paper's next position, or ``rest``, its rest point under full
+    braking);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -227,6 +238,7 @@ class TrackConfig:
     detected_only: bool = False
     net_reports: bool = False
     track_psd: float | None = None
+    planner_distance: str = "next"
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -267,6 +279,11 @@ class TrackConfig:
             raise ValueError("--net-reports: needs --noise-split reported")
         if self.track_psd is not None and not (0 < self.track_psd < math.inf):
             raise ValueError(f"--track-psd: must be a positive number, got {self.track_psd}")
+        if self.planner_distance not in DISTANCE_POINTS:
+            raise ValueError(
+                f"--planner-distance: {self.planner_distance!r} is not one of "
+                f"{', '.join(DISTANCE_POINTS)}"
+            )
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "
@@ -321,6 +338,8 @@ class TrackConfig:
             del values["net_reports"]
         if self.track_psd is None:  # as every episode flown before the option (12-05)
             del values["track_psd"]
+        if self.planner_distance == "next":  # as every episode flown before the option (12-05)
+            del values["planner_distance"]
         values["fusion_config"] = json.dumps(fusion, sort_keys=True)
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
@@ -337,6 +356,10 @@ class TrackConfig:
         if self.track_psd is None:
             return config
         return dataclasses.replace(config, acceleration_psd=self.track_psd)
+
+    def planner_config(self) -> PlannerConfig:
+        """The cloud planner's settings: the paper's weights, ``planner_distance``."""
+        return PlannerConfig(distance_at=self.planner_distance)
 
     def settings(self) -> dict[str, str | int | float | bool]:
         """The settings that change the episode's results (:meth:`describe` without
@@ -355,12 +378,13 @@ class LoopParts:
     """The parts of the closed loop a researcher swaps to compare, each a factory:
     ``detector(name, world)`` the drones' detector (``name`` is ``TrackConfig.detector``),
     ``fuser(scenario, fusion_config)`` the cloud's fusion (:meth:`TrackConfig.fusion_config`),
-    ``planner(scenario)`` the cloud's planner. The predictor and how it learns are the method's
+    ``planner(scenario, planner_config)`` the cloud's planner (:meth:`TrackConfig.
+    planner_config`). The predictor and how it learns are the method's
     (:data:`dronefl.learners.LEARNERS`; FL strategies in :data:`dronefl.fl.methods.METHODS`)."""
 
     detector: Callable[[str, World], Detector] = make_detector
     fuser: Callable[[Scenario, FusionConfig], Fuser] = scenario_fuser
-    planner: Callable[[Scenario], Planner] = DroneFLPlanner.from_scenario
+    planner: Callable[[Scenario, PlannerConfig], Planner] = DroneFLPlanner.from_scenario
 
 
 def run_episode(config: TrackConfig, parts: LoopParts | None = None) -> EpisodeMetrics:
@@ -459,7 +483,7 @@ class ClosedLoop:
         self.label_fuser: Fuser | None = None
         if config.track_psd is not None:
             self.label_fuser = parts.fuser(scenario, config.fusion_config())
-        self.planner = parts.planner(scenario)
+        self.planner = parts.planner(scenario, config.planner_config())
         self.counter = ByteCounter()
         self.n_steps = int(round(config.duration * scenario.rate_hz))
         meta = {"scenario": scenario.name, "environment": config.environment, "seed": config.seed}

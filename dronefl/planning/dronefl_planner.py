@@ -16,12 +16,14 @@ from dronefl.types import DroneState
 
 #: Most drones that may see one target next step: the uncertainty lookup table has 2^k rows.
 MAX_OBSERVERS = 16
+#: Where the distance term measures a drone (:attr:`PlannerConfig.distance_at`).
+DISTANCE_POINTS: tuple[str, ...] = ("next", "rest")
 _EPS = 1e-9  # m, m/s: slack on the bound checks so that points on a bound count as inside
 
 
 @dataclass(frozen=True)
 class PlannerConfig:
-    """Weights and solver settings of :class:`DroneFLPlanner`.
+    r"""Weights and solver settings of :class:`DroneFLPlanner`.
 
     ``alpha`` weight of ``sum_j Tr P_j`` (paper: 50); ``omega`` weight of ``sum_i ||u_i||`` (paper:
     0.005, per m/s^2); ``min_distance`` ``h`` m, below which getting closer to a target earns
@@ -31,6 +33,24 @@ class PlannerConfig:
     ``max_accel / 2^(refinements + 1)``); the drones' footprint patterns are combined
     exhaustively up to ``max_combinations`` joint choices, beyond that by coordinate descent of at
     most ``max_sweeps`` sweeps.
+
+    ``distance_at``: where the distance term measures drone ``i``: ``next`` (the paper) at its
+    next position ``p_{i,t+1}``; ``rest`` at the point where it would come to rest under full
+    braking (the point the field bound already keeps in the field),
+
+    .. math::
+        r_i = p_{i,t+1} + v_{i,t+1} \|v_{i,t+1}\| / (2 a_{max}).
+
+    A one-step cost on ``p_{t+1}`` alone never pays for braking: inside ``h`` it is flat,
+    outside it pulls at full acceleration toward the target whatever the drone's speed. When
+    the target's estimate errs along the drone's own velocity (measured in Case 1's fused
+    tracks: by 0.1-0.18 s of it), that pull keeps a tangential component and the drone orbits
+    its target where the pull is the centripetal acceleration (``|v|^2 / r = a_max``: 3.1 m at
+    2.3 m/s for ``a_max = 2``). At the rest point speed costs distance, so the planner brakes it
+    out. Following a target at speed ``s`` puts ``r_i`` ``s^2 / (2 a_max)`` ahead of the drone
+    (6 cm at the targets' 0.5 m/s). The rest point relative to each target (``v - \dot z_j``
+    with the fused velocity) was tried and dropped: the velocity estimates' noise made the
+    drones of Case 3 chatter (README, "The planner's rest point").
     """
 
     alpha: float = 50.0
@@ -41,8 +61,14 @@ class PlannerConfig:
     refinements: int = 6
     max_combinations: int = 4096
     max_sweeps: int = 6
+    distance_at: str = "next"
 
     def __post_init__(self) -> None:
+        if self.distance_at not in DISTANCE_POINTS:
+            raise ValueError(
+                f"distance_at: must be one of {', '.join(DISTANCE_POINTS)}, "
+                f"got {self.distance_at!r}"
+            )
         for name in ("alpha", "omega", "min_distance"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
@@ -231,6 +257,7 @@ class _Step:
         self.p0 = self.p + self.v * planner.dt  # (M, 2) next positions with u = 0
         self.forecast = forecast
         self.z = np.asarray(forecast.positions, dtype=float)  # (T, 2)
+        self.at_rest = cfg.distance_at == "rest"
         n_drones, n_targets = len(states), len(self.z)
         column = {j: k for k, j in enumerate(forecast.target_ids)}
         self.assigned = np.zeros((n_drones, n_targets))  # (M, T) 1 where j in N_i and tracked
@@ -276,12 +303,23 @@ class _Step:
         ).all(-1)
         ok = inside & (speed <= planner.max_speed[drone][:, None] + _EPS)
         diff = self.z[None, None, :, :] - p_next[:, :, None, :]  # (R, K, T, 2)
-        dist = np.sqrt((diff**2).sum(-1))
+        dist = self.distance(drone, diff, v_next)
         sep = (np.maximum(dist, self.h) * self.assigned[drone][:, None, :]).sum(-1)
         sep += self.omega * np.linalg.norm(u, axis=-1)
         half = planner.half_extent[drone][:, None, None, :]
         seen = (np.abs(diff) <= half).all(-1) & self.may_see[drone][:, None, :]
         return sep, ok, seen
+
+    def distance(self, drone: np.ndarray, diff: np.ndarray, v_next: np.ndarray) -> np.ndarray:
+        """The distance term's ``(R, K, T)`` m for targets at ``diff`` ``(R, K, T, 2)`` m from
+        the drones' next positions, the drones moving at ``v_next`` ``(R, K, 2)`` m/s then:
+        ``|diff|``, or with ``distance_at = "rest"`` the distance from the drone's rest point
+        (:class:`PlannerConfig`)."""
+        if self.at_rest:
+            a_max = self.planner.max_accel[drone][:, None, None]
+            overshoot = v_next * np.linalg.norm(v_next, axis=-1, keepdims=True) / (2 * a_max)
+            diff = diff - overshoot[:, :, None, :]
+        return np.sqrt((diff**2).sum(-1))
 
     def initial_candidates(self) -> np.ndarray:
         """Stage-1 accelerations ``(M, K, 2)``: zero, full braking, toward the geometric median
@@ -400,7 +438,8 @@ class _Step:
         planner = self.planner
         p_next = self.p0 + self.c * u
         diff = self.z[None, :, :] - p_next[:, None, :]  # (M, T, 2)
-        dist = np.linalg.norm(diff, axis=-1)
+        v_next = (self.v + planner.dt * u)[:, None, :]
+        dist = self.distance(np.arange(len(u)), diff[:, None], v_next)[:, 0]
         distance = float((np.maximum(dist, self.h) * self.assigned).sum())
         seen = (np.abs(diff) <= planner.half_extent[:, None, :]).all(-1) & self.may_see
         masks = np.where(seen, self.bit, 0).sum(0)  # (T,)

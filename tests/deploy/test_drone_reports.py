@@ -167,6 +167,11 @@ def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
         for d in scenario.drone_ids:
             assert flags == every & set(commands[f"drone-{d}"])
         assert on == ("--detected-only" in commands["cloud"])  # its labels follow
+    config = DeployConfig(scenario="case2", out=tmp_path, planner_distance="rest")
+    cloud = _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
+    assert cloud[cloud.index("--planner-distance") + 1] == "rest"  # the cloud plans
+    with pytest.raises(ValueError, match="--planner-distance"):
+        DeployConfig(scenario="case2", out=tmp_path, planner_distance="later")
 
 
 def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):

@@ -210,17 +210,29 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
         recommended.noise_split,
         recommended.correct_bias,
         recommended.detected_only,
-    ) == ("metric-scaffold", "others", 1, "reported", True, True)
+        recommended.planner_distance,
+    ) == ("metric-scaffold", "others", 1, "reported", True, True, "rest")
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert _as_flags(RECOMMENDED) == (  # what `dronefl demo` prints under its table
         "--config metric-scaffold --label-drones others --epochs 1 --noise-split reported "
-        "--correct-bias --detected-only"
+        "--correct-bias --detected-only --planner-distance rest"
     )
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
     assert default.noise_split == "adaptive" and not default.correct_bias
-    assert not default.detected_only
+    assert not default.detected_only and default.planner_distance == "next"
+
+
+def test_the_planner_distance_is_a_setting_old_episodes_keep_without_it(tmp_path):
+    config = TrackConfig(load_scenario("case1"), tmp_path, planner_distance="rest")
+    assert config.planner_config().distance_at == "rest"
+    assert config.describe()["planner_distance"] == "rest"
+    paper = replace(config, planner_distance="next")
+    assert paper.planner_config().distance_at == "next"
+    assert "planner_distance" not in paper.describe()  # as every episode flown before it
+    with pytest.raises(ValueError, match="--planner-distance"):
+        replace(config, planner_distance="later")
 
 
 @pytest.mark.slow

@@ -7,6 +7,7 @@ import pytest
 
 from dronefl.config import load_scenario
 from dronefl.planning import (
+    DISTANCE_POINTS,
     DroneFLPlanner,
     PlannedDrone,
     PlannerConfig,
@@ -75,7 +76,8 @@ def _drone_terms(drone, state, u, targets, config):
     for point in (p_next, rest):
         ok &= ((point >= -1e-9) & (point <= np.array(FIELD) + 1e-9)).all(1)
     assigned = [k for k, j in enumerate(targets) if j in drone.targets]
-    dist = np.linalg.norm(p_next[:, None, :] - z[None, assigned], axis=-1)
+    at = rest if config.distance_at == "rest" else p_next
+    dist = np.linalg.norm(at[:, None, :] - z[None, assigned], axis=-1)
     sep = np.maximum(dist, config.min_distance).sum(1) + config.omega * np.linalg.norm(u, axis=1)
     seen = (np.abs(z[None] - p_next[:, None, :]) <= np.array(drone.footprint_half_extent)).all(-1)
     return np.where(ok, sep, np.inf), seen
@@ -188,6 +190,71 @@ def test_dense_grid_optimum_at_the_speed_bound():
     assert reference <= optimum + _tolerance([drone], 0.01, config)
 
 
+def test_at_the_rest_point_a_drone_passing_its_target_brakes():
+    # On the target at 2 m/s: its next position (0.4 m on) is inside h = 1 m, so the paper's
+    # distance term is flat and the drone coasts on; its rest point under full braking lies
+    # 0.4 + 2^2 / (2 * 2) = 1.4 m on, so measured there the drone brakes.
+    drone = PlannedDrone(1, 3.0, 2.0, (10.0, 6.0), targets=(1,))
+    states = [_state(1, (50.0, 50.0), (2.0, 0.0))]
+    forecast = _forecast({1: (50.0, 50.0)}, [1])
+    paper = DroneFLPlanner([drone], FIELD, DT, PlannerConfig(alpha=0.0)).plan(states, forecast)
+    np.testing.assert_array_equal(paper.accelerations[1], [0.0, 0.0])
+    config = PlannerConfig(alpha=0.0, distance_at="rest")
+    plan = DroneFLPlanner([drone], FIELD, DT, config).plan(states, forecast)
+    assert plan.accelerations[1][0] < -0.5 and abs(plan.accelerations[1][1]) < 1e-6
+
+
+@pytest.mark.parametrize("alpha", [0.02, 50.0])
+def test_rest_point_distance_matches_the_dense_grid_optimum(alpha):
+    # Two drones in motion, one of them crossing its target: the rest-point cost is not
+    # convex in u, so the solver's grid and pattern search are checked by brute force.
+    drones = [
+        PlannedDrone(1, 3.0, 2.0, (10.0, 6.0), targets=(1, 3)),
+        PlannedDrone(2, 2.0, 1.5, (8.0, 5.0), targets=(2,)),
+    ]
+    targets = {1: (42.0, 49.0), 2: (80.0, 57.0), 3: (50.006, 50.0)}
+    states = [_state(1, (40.0, 50.0), (2.5, 0.5)), _state(2, (57.993, 50.0), (0.1, -0.2))]
+    forecast = _forecast(targets, [1, 2])
+    config = PlannerConfig(alpha=alpha, distance_at="rest")
+    plan = DroneFLPlanner(drones, FIELD, DT, config).plan(states, forecast)
+
+    reference = _reference_cost(drones, states, targets, forecast, config, plan)
+    assert plan.cost.total == pytest.approx(reference, rel=1e-12)
+    optimum = _brute_force(drones, states, targets, forecast, config, 0.01)
+    # The rest point moves by (dt^2/2 + dt |v| / a_max) per m/s^2 of u, |v| <= max_speed.
+    slope = sum(
+        len(d.targets) * (DT**2 / 2 + DT * d.max_speed / d.max_accel) + config.omega for d in drones
+    )
+    assert reference <= optimum + slope * 0.01
+
+
+@pytest.mark.parametrize("coupling", [0.0, 0.15])
+def test_the_rest_point_ends_the_orbit_a_velocity_coupled_error_sustains(coupling):
+    # The drone starts in the orbit Case 1's episodes show (3 m off its target, 2.3 m/s
+    # across). The target's estimate is shifted along the drone's own velocity by ``coupling``
+    # s of it (measured in those episodes: 0.1-0.18 s). With the coupling, chasing the estimate
+    # at full acceleration keeps feeding the orbit under the paper's one-step distance; without
+    # it the orbit decays; measured at the rest point it decays either way.
+    drone = PlannedDrone(1, 3.0, 2.0, (16.8, 9.45), targets=(1,))
+    spread = {}
+    for distance_at in DISTANCE_POINTS:
+        planner = DroneFLPlanner([drone], FIELD, DT, PlannerConfig(distance_at=distance_at))
+        rng = np.random.default_rng(1)
+        p, v, x, speed = np.array([53.0, 50.0]), np.array([0.5, 2.3]), 50.0, 0.5
+        squared = []
+        for k in range(450):
+            estimate = np.array([x, 50.0]) + coupling * v + 0.1 * rng.standard_normal(2)
+            forecast = _forecast({1: estimate}, [1])
+            u = planner.plan([_state(1, p, v)], forecast).accelerations[1]
+            (p,), (v,) = double_integrator_step(p, v, u[None], DT)
+            x += speed * DT
+            if k >= 150:  # after 30 s
+                squared.append(np.sum((p - (x, 50.0)) ** 2))
+        spread[distance_at] = np.mean(squared)  # m^2
+    assert spread["rest"] < 1.5
+    assert spread["next"] > 4.0 if coupling else spread["next"] < 1.5
+
+
 # --- bounds -----------------------------------------------------------------------------------
 
 
@@ -263,6 +330,8 @@ def test_bad_inputs_raise_clear_errors():
         PlannerConfig(alpha=-1.0)
     with pytest.raises(ValueError, match="directions"):
         PlannerConfig(directions=2)
+    with pytest.raises(ValueError, match="distance_at"):
+        PlannerConfig(distance_at="later")
 
 
 def test_without_tracks_the_drones_coast():
