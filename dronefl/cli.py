@@ -149,8 +149,7 @@ def demo(
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones others --epochs 1
     --noise-split reported --correct-bias --detected-only --planner-distance rest), for 600 s:
-    seed 0 of the README's
-    Table I row of that setting.
+    seed 0 of the README's Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
     """
@@ -661,9 +660,10 @@ SettingOption = Annotated[
         "--setting",
         help="Named closed-loop setting: recommended (make demo's, the default) | ours (the "
         "paper's online setting on our model) | paper (the paper's system as written: its "
-        "training, filtered-track labels, plain adaptive EKF). It sets --config, --labels, "
-        "--fusion, --label-drones, --epochs, --noise-split, --correct-bias and "
-        "--detected-only; each of them given beside it wins.",
+        "training, filtered-track labels, plain adaptive EKF, its planner's J). It sets "
+        "--config, --labels, --fusion, --label-drones, --epochs, --noise-split, "
+        "--correct-bias, --detected-only and --planner-distance; each of them given beside it "
+        "wins.",
     ),
 ]
 
