@@ -617,8 +617,8 @@ PlannerDistanceOption = Annotated[
     typer.Option(
         "--planner-distance",
         help="Where the planner's distance term measures a drone: next (the paper: its next "
-        "position) | rest (where it would come to rest relative to the target under full "
-        "braking, which ends orbiting).",
+        "position) | rest (where it would come to rest under full braking, which ends "
+        "orbiting).",
     ),
 ]
 EpochsOption = Annotated[

@@ -107,7 +107,9 @@ class DroneFLPlanner(Planner):
 
     with ``p_{i,t+1} = p_i + v_i dt + u_i dt^2 / 2`` and ``v_{i,t+1} = v_i + u_i dt``, subject to
     ``||u_i|| <= max_accel``, ``||v_{i,t+1}|| <= max_speed`` and the drone staying in the field
-    ``[0, W] x [0, H]``. ``z_j`` is the fused position of target ``j``; ``A_j`` the drones whose
+    ``[0, W] x [0, H]``; with ``config.distance_at = "rest"`` the distance term measures from
+    each drone's rest point instead of ``p_{i,t+1}`` (:class:`PlannerConfig`). ``z_j`` is the
+    fused position of target ``j``; ``A_j`` the drones whose
     camera footprint at ``p_{i,t+1}`` contains ``z_j``; ``P_{j,t+1}(A_j)`` the covariance after the
     next predict step and the updates of ``A_j`` with their adapted ``R``
     (:meth:`TrackForecast.trace_table`), so moving a drone changes the uncertainty term.
@@ -118,7 +120,8 @@ class DroneFLPlanner(Planner):
     that rest point fixed), so the constraint set is never empty; a drone that starts outside it
     (e.g. placed at full speed next to the edge) brakes.
 
-    Solver. The distance and effort terms are separable per drone and convex in ``u_i``; the
+    Solver. The distance and effort terms are separable per drone and convex in ``u_i`` (not
+    at the rest point, which the stage-1 grid and the brute-force tests cover); the
     uncertainty term couples drones only through shared targets and depends on ``u`` only through
     each drone's footprint *pattern* (which targets it would hold), which is piecewise constant.
     So ``J = sum_i c_i(u_i) + alpha sum_j Tr P_j(patterns)``, and the solver works per pattern:
