@@ -1192,13 +1192,7 @@ def cloud(
             "--detected-only): a drone learns a label of a target it watches from the others.",
         ),
     ] = False,
-    planner_distance: Annotated[
-        str,
-        typer.Option(
-            "--planner-distance",
-            help="Where the planner measures a drone's distance: next (the paper) | rest.",
-        ),
-    ] = "next",
+    planner_distance: PlannerDistanceOption = "next",
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp

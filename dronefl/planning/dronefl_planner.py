@@ -214,6 +214,15 @@ class DroneFLPlanner(Planner):
         return _Step(self, drones, forecast).result(np.asarray(accelerations, dtype=float)).cost
 
 
+def _rest_point(
+    p_next: np.ndarray, v_next: np.ndarray, speed: np.ndarray, a_max: np.ndarray
+) -> np.ndarray:
+    """Where a drone at ``p_next`` (..., 2) m moving at ``v_next`` (..., 2) m/s (``speed`` its
+    norm, (...)) comes to rest under full braking ``a_max`` (broadcast to (...)) m/s^2:
+    ``p + v |v| / (2 a_max)``, m."""
+    return p_next + v_next * (speed / (2 * a_max))[..., None]
+
+
 def _clip_norm(u: np.ndarray, limit: np.ndarray) -> np.ndarray:
     """Scale the rows of ``u`` ``(M, K, 2)`` that lie outside the disc of radius ``limit``
     ``(M,)`` onto its rim."""
@@ -297,7 +306,7 @@ class _Step:
         p_next = self.p0[drone][:, None, :] + self.c * u  # (R, K, 2)
         v_next = self.v[drone][:, None, :] + planner.dt * u
         speed = np.linalg.norm(v_next, axis=-1)  # (R, K)
-        rest = p_next + v_next * (speed / (2 * a_max))[..., None]
+        rest = _rest_point(p_next, v_next, speed, a_max)
         inside = (
             (p_next >= -_EPS)
             & (p_next <= planner.upper + _EPS)
@@ -306,23 +315,13 @@ class _Step:
         ).all(-1)
         ok = inside & (speed <= planner.max_speed[drone][:, None] + _EPS)
         diff = self.z[None, None, :, :] - p_next[:, :, None, :]  # (R, K, T, 2)
-        dist = self.distance(drone, diff, v_next)
+        reach = self.z[None, None, :, :] - rest[:, :, None, :] if self.at_rest else diff
+        dist = np.sqrt((reach**2).sum(-1))
         sep = (np.maximum(dist, self.h) * self.assigned[drone][:, None, :]).sum(-1)
         sep += self.omega * np.linalg.norm(u, axis=-1)
         half = planner.half_extent[drone][:, None, None, :]
         seen = (np.abs(diff) <= half).all(-1) & self.may_see[drone][:, None, :]
         return sep, ok, seen
-
-    def distance(self, drone: np.ndarray, diff: np.ndarray, v_next: np.ndarray) -> np.ndarray:
-        """The distance term's ``(R, K, T)`` m for targets at ``diff`` ``(R, K, T, 2)`` m from
-        the drones' next positions, the drones moving at ``v_next`` ``(R, K, 2)`` m/s then:
-        ``|diff|``, or with ``distance_at = "rest"`` the distance from the drone's rest point
-        (:class:`PlannerConfig`)."""
-        if self.at_rest:
-            a_max = self.planner.max_accel[drone][:, None, None]
-            overshoot = v_next * np.linalg.norm(v_next, axis=-1, keepdims=True) / (2 * a_max)
-            diff = diff - overshoot[:, :, None, :]
-        return np.sqrt((diff**2).sum(-1))
 
     def initial_candidates(self) -> np.ndarray:
         """Stage-1 accelerations ``(M, K, 2)``: zero, full braking, toward the geometric median
@@ -441,8 +440,13 @@ class _Step:
         planner = self.planner
         p_next = self.p0 + self.c * u
         diff = self.z[None, :, :] - p_next[:, None, :]  # (M, T, 2)
-        v_next = (self.v + planner.dt * u)[:, None, :]
-        dist = self.distance(np.arange(len(u)), diff[:, None], v_next)[:, 0]
+        if self.at_rest:
+            v_next = self.v + planner.dt * u
+            speed = np.linalg.norm(v_next, axis=-1)
+            rest = _rest_point(p_next, v_next, speed, planner.max_accel)
+            dist = np.linalg.norm(self.z[None, :, :] - rest[:, None, :], axis=-1)
+        else:
+            dist = np.linalg.norm(diff, axis=-1)
         distance = float((np.maximum(dist, self.h) * self.assigned).sum())
         seen = (np.abs(diff) <= planner.half_extent[:, None, :]).all(-1) & self.may_see
         masks = np.where(seen, self.bit, 0).sum(0)  # (T,)
