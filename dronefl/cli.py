@@ -148,7 +148,8 @@ def demo(
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones others --epochs 1
-    --noise-split reported --correct-bias --detected-only --planner-distance rest), for 600 s:
+    --noise-split reported --correct-bias --detected-only --planner-distance rest
+    --constant-speed-psd 0.001; the last acts on Cases 1 and 3 only), for 600 s:
     seed 0 of the README's Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
@@ -621,6 +622,15 @@ PlannerDistanceOption = Annotated[
         "orbiting).",
     ),
 ]
+ConstantSpeedPsdOption = Annotated[
+    float | None,
+    typer.Option(
+        "--constant-speed-psd",
+        help="The fusion's process noise q (m^2/s^3) for constant-speed targets (Cases 1 and "
+        "3; random-walk targets keep theirs): 0.1 (ours, paper) | 0.001 (recommended, chosen "
+        "by replay on tuning seeds).",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -662,8 +672,8 @@ SettingOption = Annotated[
         "paper's online setting on our model) | paper (the paper's system as written: its "
         "training, filtered-track labels, plain adaptive EKF, its planner's J). It sets "
         "--config, --labels, --fusion, --label-drones, --epochs, --noise-split, "
-        "--correct-bias, --detected-only and --planner-distance; each of them given beside it "
-        "wins.",
+        "--correct-bias, --detected-only, --planner-distance and --constant-speed-psd; each of "
+        "them given beside it wins.",
     ),
 ]
 
@@ -708,6 +718,7 @@ def track(
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
+    constant_speed_psd: ConstantSpeedPsdOption = None,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
@@ -754,6 +765,7 @@ def track(
             correct_bias=correct_bias,
             detected_only=detected_only,
             planner_distance=planner_distance,
+            constant_speed_psd=constant_speed_psd,
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -827,6 +839,7 @@ def table1(
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
+    constant_speed_psd: ConstantSpeedPsdOption = None,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -857,6 +870,7 @@ def table1(
             setting, preset=preset, labels=labels, fusion=fusion, label_drones=label_drones,
             epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
             detected_only=detected_only, planner_distance=planner_distance,
+            constant_speed_psd=constant_speed_psd,
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1193,6 +1207,7 @@ def cloud(
         ),
     ] = False,
     planner_distance: PlannerDistanceOption = "next",
+    constant_speed_psd: ConstantSpeedPsdOption = None,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1233,6 +1248,7 @@ def cloud(
             noise_split=noise_split,
             detected_only=detected_only,
             planner_distance=planner_distance,
+            **({} if constant_speed_psd is None else {"constant_speed_psd": constant_speed_psd}),
         )
         fl = closed_loop_settings(
             preset,
@@ -1284,6 +1300,7 @@ def deploy_up(
     detected_only: DetectedOnlyOption = None,
     net_reports: NetReportsOption = False,
     planner_distance: PlannerDistanceOption = None,
+    constant_speed_psd: ConstantSpeedPsdOption = None,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1300,7 +1317,7 @@ def deploy_up(
     chosen = _setting(
         setting, preset=preset, label_drones=label_drones, epochs=epochs,
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
-        planner_distance=planner_distance,
+        planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

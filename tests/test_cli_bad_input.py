@@ -208,6 +208,8 @@ BAD_OPTIONS = [
     "track --setting nope",
     "track --track-psd 0",
     "track --planner-distance later",
+    "track --constant-speed-psd 0",
+    "deploy up --constant-speed-psd -1",
     "deploy up --setting paper",
     "image-baseline --epochs 0",
     "cloud --model FILE --config nope",

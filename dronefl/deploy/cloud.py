@@ -59,7 +59,7 @@ from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
-from dronefl.tracking.fusion import NOISE_SPLITS
+from dronefl.tracking.fusion import CONSTANT_SPEED_PSD, NOISE_SPLITS, constant_speed_q
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.wire import (
     ControlMessage,
@@ -95,7 +95,8 @@ class CloudSettings:
     drone's own condition in ``--label-drones`` is that it watches the target (as ``dronefl
     track --detected-only``); ``planner_distance`` where the planner measures a drone
     (:attr:`~dronefl.planning.PlannerConfig.distance_at`, as ``dronefl track
-    --planner-distance``).
+    --planner-distance``); ``constant_speed_psd`` the fusion's process noise q for
+    constant-speed targets, m^2/s^3 (as ``dronefl track --constant-speed-psd``).
     """
 
     scenario: str
@@ -116,8 +117,10 @@ class CloudSettings:
     noise_split: str = "adaptive"
     detected_only: bool = False
     planner_distance: str = "next"
+    constant_speed_psd: float = CONSTANT_SPEED_PSD
 
     def __post_init__(self) -> None:
+        constant_speed_q(self.constant_speed_psd)
         if self.planner_distance not in DISTANCE_POINTS:
             raise ValueError(
                 f"--planner-distance: {self.planner_distance!r} is not one of "
@@ -200,7 +203,10 @@ class CloudEpisode:
         s = self.scenario
         self.n_steps = int(round(settings.duration * s.rate_hz))
         self.fl_every = int(round(settings.fl_period * s.rate_hz))
-        fusion = replace(fusion_config(s), noise_split=settings.noise_split)
+        fusion = replace(
+            fusion_config(s, constant_speed_psd=settings.constant_speed_psd),
+            noise_split=settings.noise_split,
+        )
         self.fuser = Fuser(s.target_ids, s.drone_ids, fusion)
         self.planner = DroneFLPlanner.from_scenario(
             s, PlannerConfig(distance_at=settings.planner_distance)

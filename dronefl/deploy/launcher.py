@@ -31,7 +31,7 @@ from dronefl.deploy.processes import Child, Children, DeployError, marked, port_
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
 from dronefl.fl.records import PRESETS
 from dronefl.planning import DISTANCE_POINTS
-from dronefl.tracking.fusion import NOISE_SPLITS
+from dronefl.tracking.fusion import NOISE_SPLITS, constant_speed_q
 from dronefl.tracking.labels import LABEL_DRONES
 
 HOST = "127.0.0.1"
@@ -66,6 +66,7 @@ class DeployConfig:
     detected_only: bool = False
     net_reports: bool = False
     planner_distance: str = "next"
+    constant_speed_psd: float | None = None
 
     def __post_init__(self) -> None:
         if self.noise_split not in NOISE_SPLITS:
@@ -97,6 +98,7 @@ class DeployConfig:
                 f"--planner-distance: {self.planner_distance!r} is not one of "
                 f"{', '.join(DISTANCE_POINTS)}"
             )
+        constant_speed_q(self.constant_speed_psd)
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -223,6 +225,11 @@ def _commands(
             "--noise-split", config.noise_split,
             *(["--detected-only"] if config.detected_only else []),
             "--planner-distance", config.planner_distance,
+            *(
+                ["--constant-speed-psd", repr(config.constant_speed_psd)]
+                if config.constant_speed_psd is not None
+                else []
+            ),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

@@ -84,7 +84,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.fusion import NOISE_SPLITS
+from dronefl.tracking.fusion import NOISE_SPLITS, TUNED_CONSTANT_SPEED_PSD, constant_speed_q
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.tracking.reports import NoiseReporter, detected_now
 from dronefl.wire import ControlMessage, NoiseReportMessage, PredictionMessage, raw_inputs_message
@@ -118,11 +118,14 @@ NOT_SETTINGS: tuple[str, ...] = ("out", "progress", "animate", "resume")
 #: under full braking (``planner_distance = "rest"``), chosen the same way: on tuning seeds
 #: 10-11 it ended Case 1's orbiting drone (tracking distance -90 %) and DroneFL's prediction
 #: error fell 75 % / 7 % / 34 % in Cases 1 / 2 / 3, every seed (README, "The planner's rest
-#: point").
+#: point"). Since 2026-12-05 (late evening) the fusion tracks constant-speed targets with
+#: q = :data:`~dronefl.tracking.fusion.TUNED_CONSTANT_SPEED_PSD` (``constant_speed_psd``),
+#: chosen by replay on the same tuning episodes (README, "The fusion's process noise for
+#: constant-speed targets").
 #: The :class:`TrackConfig` defaults stay ``ours`` with the paper's online setting (``all``,
 #: E = 10), the adaptive split, no correction and every prediction sent (:data:`SETTINGS`'
 #: ``ours``); the command line flies ``recommended`` unless told (``--setting``).
-RECOMMENDED: dict[str, str | int | bool] = {
+RECOMMENDED: dict[str, str | int | float | bool] = {
     "preset": "metric-scaffold",
     "label_drones": "others",
     "epochs": 1,
@@ -130,31 +133,33 @@ RECOMMENDED: dict[str, str | int | bool] = {
     "correct_bias": True,
     "detected_only": True,
     "planner_distance": "rest",
+    "constant_speed_psd": TUNED_CONSTANT_SPEED_PSD,
 }
 
 #: The :class:`TrackConfig` fields a named setting (``--setting``) fills in.
 SETTING_FIELDS: tuple[str, ...] = (
     "preset", "labels", "fusion", "label_drones", "epochs", "noise_split", "correct_bias",
-    "detected_only", "planner_distance",
+    "detected_only", "planner_distance", "constant_speed_psd",
 )  # fmt: skip
 #: Named closed-loop settings (``track``/``table1``/``deploy up --setting``), every field of
-#: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's). ``recommended`` is
+#: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's; ``constant_speed_psd`` ``None``: the
+#: fusion's default). ``recommended`` is
 #: :data:`RECOMMENDED` (``make demo``'s, the CLI's default); ``ours`` the :class:`TrackConfig`
 #: defaults (our first closed loop: the ``ours`` model with the paper's online setting, every
 #: drone learning every label, E = 10); ``paper`` the paper's system as written: its model
 #: and training (E = 10, Adam 1e-3, Eq. 6 AdaIN), the filtered fused tracks as labels and its
 #: plain adaptive EKF.
-SETTINGS: dict[str, dict[str, str | int | bool | None]] = {
+SETTINGS: dict[str, dict[str, str | int | float | bool | None]] = {
     "recommended": {"labels": "smoothed", "fusion": "robust", **RECOMMENDED},
     "ours": {
         "preset": "ours", "labels": "smoothed", "fusion": "robust", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
-        "planner_distance": "next",
+        "planner_distance": "next", "constant_speed_psd": None,
     },
     "paper": {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
-        "planner_distance": "next",
+        "planner_distance": "next", "constant_speed_psd": None,
     },
 }  # fmt: skip
 
@@ -207,7 +212,9 @@ class TrackConfig:
     wants the smaller q); ``None``: one filter for both; ``planner_distance`` where the
     planner's distance term measures a drone (:attr:`~dronefl.planning.PlannerConfig.
     distance_at`: ``next``, the paper's next position, or ``rest``, its rest point under full
-    braking);
+    braking); ``constant_speed_psd`` (m^2/s^3) the fusion's process noise q for constant-speed
+    targets (:func:`~dronefl.tracking.fusion_config`; ``None``: its default; random-walk
+    targets keep theirs);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -239,6 +246,7 @@ class TrackConfig:
     net_reports: bool = False
     track_psd: float | None = None
     planner_distance: str = "next"
+    constant_speed_psd: float | None = None
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -284,6 +292,7 @@ class TrackConfig:
                 f"--planner-distance: {self.planner_distance!r} is not one of "
                 f"{', '.join(DISTANCE_POINTS)}"
             )
+        constant_speed_q(self.constant_speed_psd)
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "
@@ -322,8 +331,9 @@ class TrackConfig:
         runs (``fusion_config``, JSON: its defaults for the scenario, so that an episode flown
         with other fusion defaults is never taken for this one). ``noise_split`` appears only
         when it is ``reported`` and ``correct_bias``, ``detected_only`` and ``net_reports``
-        only when set, so that the episodes flown
-        before they existed stay reusable."""
+        only when set, so that the episodes flown before they existed stay reusable;
+        ``constant_speed_psd`` never: its q is in ``fusion_config`` where it applies (a Case 2
+        episode is the same with any)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["scenario"] = self.scenario.name
         del values["resume"]
@@ -340,13 +350,15 @@ class TrackConfig:
             del values["track_psd"]
         if self.planner_distance == "next":  # as every episode flown before the option (12-05)
             del values["planner_distance"]
+        del values["constant_speed_psd"]  # in fusion_config where it applies, not elsewhere
         values["fusion_config"] = json.dumps(fusion, sort_keys=True)
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
     def fusion_config(self) -> FusionConfig:
-        """The cloud fusion's settings: the closed loop's for the scenario and ``fusion``
-        method (:func:`~dronefl.tracking.fusion_config`) with ``noise_split``."""
-        config = fusion_config(self.scenario, self.fusion)
+        """The cloud fusion's settings: the closed loop's for the scenario, ``fusion`` method
+        and ``constant_speed_psd`` (:func:`~dronefl.tracking.fusion_config`) with
+        ``noise_split``."""
+        config = fusion_config(self.scenario, self.fusion, self.constant_speed_psd)
         return dataclasses.replace(config, noise_split=self.noise_split)
 
     def track_fusion_config(self) -> FusionConfig:

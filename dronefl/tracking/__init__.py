@@ -4,7 +4,9 @@ pseudo-labels and track metrics (SPEC §6, §8)."""
 from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
 from dronefl.tracking.ekf import CHI2_2DOF_99, ExtendedKalmanFilter, UpdateDiagnostics
 from dronefl.tracking.fusion import (
+    CONSTANT_SPEED_PSD,
     RANDOM_WALK_VELOCITY_TIME_CONSTANT,
+    TUNED_CONSTANT_SPEED_PSD,
     Fuser,
     FusionConfig,
     PositionMeasurement,
@@ -25,9 +27,11 @@ from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 __all__ = [
     "CHI2_2DOF_99",
+    "CONSTANT_SPEED_PSD",
     "FUSION_METHODS",
     "LABEL_SOURCES",
     "RANDOM_WALK_VELOCITY_TIME_CONSTANT",
+    "TUNED_CONSTANT_SPEED_PSD",
     "AdaptiveMeasurementNoise",
     "ConstantVelocity",
     "MeanRevertingVelocity",

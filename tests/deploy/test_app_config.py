@@ -43,8 +43,9 @@ def test_the_staged_app_is_the_package_and_its_scenarios(tmp_path):
 
 def test_cloud_settings_survive_the_run_config():
     settings = CloudSettings(
-        scenario="case2", model="m", out="o", round_timeout=12.5, deshrink_labels=True
-    )
+        scenario="case2", model="m", out="o", round_timeout=12.5, deshrink_labels=True,
+        constant_speed_psd=1e-3,
+    )  # fmt: skip
     assert CloudSettings.from_run_config(settings.to_run_config()) == settings
     # A flag given as text is refused by name ("false" would be true to bool()).
     as_text = {**settings.to_run_config(), "deploy-deshrink-labels": "false"}

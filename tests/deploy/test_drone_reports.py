@@ -172,6 +172,12 @@ def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
     assert cloud[cloud.index("--planner-distance") + 1] == "rest"  # the cloud plans
     with pytest.raises(ValueError, match="--planner-distance"):
         DeployConfig(scenario="case2", out=tmp_path, planner_distance="later")
+    assert "--constant-speed-psd" not in cloud  # not given: the cloud's default
+    config = DeployConfig(scenario="case3", out=tmp_path, constant_speed_psd=1e-3)
+    cloud = _commands(config, load_scenario("case3"), tmp_path / "m.npz", None, tmp_path)["cloud"]
+    assert float(cloud[cloud.index("--constant-speed-psd") + 1]) == 1e-3  # the cloud fuses
+    with pytest.raises(ValueError, match="--constant-speed-psd"):
+        DeployConfig(scenario="case3", out=tmp_path, constant_speed_psd=-1.0)
 
 
 def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):

@@ -25,7 +25,7 @@ def test_every_setting_names_every_field_and_ours_is_the_config_defaults():
     assert SETTINGS["paper"] == {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
-        "planner_distance": "next",
+        "planner_distance": "next", "constant_speed_psd": None,
     }  # fmt: skip
 
 

@@ -211,17 +211,33 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
         recommended.correct_bias,
         recommended.detected_only,
         recommended.planner_distance,
-    ) == ("metric-scaffold", "others", 1, "reported", True, True, "rest")
+        recommended.constant_speed_psd,
+    ) == ("metric-scaffold", "others", 1, "reported", True, True, "rest", 1e-3)
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert _as_flags(RECOMMENDED) == (  # what `dronefl demo` prints under its table
         "--config metric-scaffold --label-drones others --epochs 1 --noise-split reported "
-        "--correct-bias --detected-only --planner-distance rest"
+        "--correct-bias --detected-only --planner-distance rest --constant-speed-psd 0.001"
     )
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
     assert default.noise_split == "adaptive" and not default.correct_bias
     assert not default.detected_only and default.planner_distance == "next"
+    assert default.constant_speed_psd is None and default.fusion_config().acceleration_psd == 1.0
+
+
+def test_the_constant_speed_q_reaches_the_fusion_and_names_episodes_through_it(tmp_path):
+    case3 = TrackConfig(load_scenario("case3"), tmp_path, constant_speed_psd=1e-3)
+    assert case3.fusion_config().acceleration_psd == case3.track_fusion_config().acceleration_psd
+    assert case3.fusion_config().acceleration_psd == 1e-3
+    paper = replace(case3, constant_speed_psd=None)
+    assert paper.fusion_config().acceleration_psd == 0.1
+    assert "constant_speed_psd" not in case3.describe()  # its q is in fusion_config
+    assert case3.settings() != paper.settings()
+    case2 = replace(case3, scenario=load_scenario("case2"))  # random walk: the same episode
+    assert case2.settings() == replace(case2, constant_speed_psd=None).settings()
+    with pytest.raises(ValueError, match="--constant-speed-psd"):
+        replace(case3, constant_speed_psd=0.0)
 
 
 def test_the_planner_distance_is_a_setting_old_episodes_keep_without_it(tmp_path):

@@ -109,6 +109,18 @@ def test_the_closed_loop_tracks_random_walk_targets_with_a_forgetting_velocity()
         assert (config.motion, config.acceleration_psd) == ("constant_velocity", 0.1)
 
 
+def test_the_constant_speed_q_acts_on_constant_speed_targets_only():
+    for case in ("case1", "case3"):
+        for method in ("robust", "paper"):
+            config = fusion_config(load_scenario(case), method, constant_speed_psd=1e-3)
+            assert (config.motion, config.acceleration_psd) == ("constant_velocity", 1e-3)
+    case2 = load_scenario("case2")  # random walk: its own q, whatever is asked
+    assert fusion_config(case2, constant_speed_psd=1e-3) == fusion_config(case2)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="--constant-speed-psd"):
+            fusion_config(case2, constant_speed_psd=bad)
+
+
 def _numerical_jacobian(model, x, dt, step=1e-6):
     cols = []
     for k in range(len(x)):
