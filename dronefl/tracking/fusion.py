@@ -546,8 +546,9 @@ CONSTANT_SPEED_PSD = 0.1
 #: episodes (seeds 10 and 11, fixed models, the recommended setting) from 1e-5 to 0.1 in
 #: steps of ~3x: the largest q whose fused track is within 10 % of the best in both cases
 #: (Case 1 fails below 3e-4: 0.035 m² at 1e-4, 72 m² at 1e-5). A 0.5 m/s vehicle accelerates
-#: only in its headland U-turns (v²/r = 0.017 m/s² for Case 3's 15 m radius), and the robust
-#: fusion's fading (:attr:`FusionConfig.fading`) follows a track the drones find lagging.
+#: only in its headland U-turns (v²/r = 0.017 m/s² for Case 3's 15 m radius); in sharper
+#: turns this q lags by decimetres (README, "The fusion's process noise for constant-speed
+#: targets").
 TUNED_CONSTANT_SPEED_PSD = 0.001
 
 
