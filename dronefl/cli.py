@@ -945,7 +945,16 @@ def pretrain(
 
 @app.command()
 def replay(
+    ctx: typer.Context,
     episode: Annotated[Path, typer.Argument(help="A `dronefl track` folder (episode.npz).")],
+    as_flown: Annotated[
+        bool,
+        typer.Option(
+            "--as-flown",
+            help="Start from the fusion settings the episode was flown with (metrics.json's "
+            "fusion_config) and its --detected-only; the fusion options given beside it win.",
+        ),
+    ] = False,
     method: Annotated[str, typer.Option(help="Fusion method: robust|paper.")] = "robust",
     acceleration_psd: Annotated[
         float | None, typer.Option(help="Process noise q, m^2/s^3 (default: the scenario's).")
@@ -1005,12 +1014,17 @@ def replay(
     ),
 ) -> None:
     """Re-fuse and smooth an episode's recorded predictions with other fusion settings; print,
-    per target, each drone's prediction MSE beside the fused track's and the labels'.
+    per target, each drone's prediction MSE beside the fused track's and the labels'. Without
+    --as-flown every fusion option left out is the closed loop's default for the scenario;
+    with it, the episode's own.
 
-    Example: dronefl replay runs/c2 --method paper --out runs/c2/replay_paper
+    Example: dronefl replay runs/c2 --as-flown --method paper --out runs/c2/replay_paper
     """
+    from click.core import ParameterSource
+
     from dronefl.experiments.replay import (
         EpisodeError,
+        flown_config,
         format_result,
         load_episode,
         replay_config,
@@ -1018,21 +1032,31 @@ def replay(
     )
     from dronefl.experiments.replay import replay as run
 
+    fusion = {
+        "method": method,
+        "motion": motion,
+        "velocity_time_constant": velocity_time_constant,
+        "acceleration_psd": acceleration_psd,
+        "adaptive": adaptive,
+        "gate": gate if gate > 0 else None,
+        "huber_threshold": huber_threshold,
+        "error_autocorrelation": error_autocorrelation,
+        "fading": fading,
+        "noise_split": noise_split,
+    }
     try:
         recorded = load_episode(episode)
-        config = replay_config(
-            recorded.scenario,
-            method=method,
-            motion=motion,
-            velocity_time_constant=velocity_time_constant,
-            acceleration_psd=acceleration_psd,
-            adaptive=adaptive,
-            gate=gate if gate > 0 else None,
-            huber_threshold=huber_threshold,
-            error_autocorrelation=error_autocorrelation,
-            fading=fading,
-            noise_split=noise_split,
-        )
+        if as_flown:
+            given = {
+                name: value
+                for name, value in fusion.items()
+                if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE
+            }
+            config = flown_config(recorded, **given)
+            if ctx.get_parameter_source("detected_only") is not ParameterSource.COMMANDLINE:
+                detected_only = recorded.detected_only
+        else:
+            config = replay_config(recorded.scenario, **fusion)
         result = run(
             recorded,
             config,

@@ -50,7 +50,9 @@ class Episode:
     ``bias_corrected``: the drones corrected their predictions' bias in flight (the
     predictions are those they sent); ``sent`` ``(K, M, N)`` bool: which predictions reached
     the cloud (all but those withheld by ``track --detected-only``; every finite one for an
-    episode recorded before it existed).
+    episode recorded before it existed); ``flown_fusion`` the fusion settings it was flown
+    with (``metrics.json``'s ``fusion_config``; ``None`` for an episode that does not record
+    them) and ``detected_only`` whether it was flown with ``track --detected-only``.
     """
 
     path: Path
@@ -62,6 +64,8 @@ class Episode:
     bias_corrected: bool = False
     sent: np.ndarray | None = None
     net_reports: bool = False
+    flown_fusion: FusionConfig | None = None
+    detected_only: bool = False
 
     def __post_init__(self) -> None:
         if self.sent is None:
@@ -101,7 +105,20 @@ def load_episode(folder: str | Path) -> Episode:
         shape = expected["prediction"][:3]
         raise EpisodeError(f"{npz}: sent has shape {sent.shape}, expected {shape}")
     corrected, net = bool(config.get("correct_bias")), bool(config.get("net_reports"))
-    return Episode(folder, scenario, **arrays, bias_corrected=corrected, sent=sent, net_reports=net)
+    return Episode(
+        folder, scenario, **arrays, bias_corrected=corrected, sent=sent, net_reports=net,
+        flown_fusion=_flown_fusion(config), detected_only=bool(config.get("detected_only")),
+    )  # fmt: skip
+
+
+def _flown_fusion(config: dict) -> FusionConfig | None:
+    """The :class:`FusionConfig` an episode's ``metrics.json`` config records (its
+    ``fusion_config`` JSON, without ``noise_split`` when that was ``adaptive``); ``None``
+    when it records none or settings this version does not know."""
+    try:
+        return FusionConfig(**json.loads(config["fusion_config"]))
+    except (KeyError, TypeError, ValueError):
+        return None
 
 
 _ARRAYS = ("prediction", "target_position", "track_position", "t")
@@ -226,6 +243,21 @@ def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
     method = chosen.pop("method", "robust")
     try:
         return replace(fusion_config(scenario, method), **chosen)
+    except TypeError as exc:
+        raise ValueError(f"fusion settings: {exc}") from None
+
+
+def flown_config(episode: Episode, **overrides: object) -> FusionConfig:
+    """The fusion settings ``episode`` was flown with, ``overrides`` (FusionConfig fields)
+    applied; raises :class:`EpisodeError` for an episode that does not record them and
+    ``ValueError`` naming a bad field."""
+    if episode.flown_fusion is None:
+        raise EpisodeError(
+            f"{episode.path / 'metrics.json'}: records no fusion settings this version reads; "
+            "replay it without --as-flown, giving the fusion options"
+        )
+    try:
+        return replace(episode.flown_fusion, **overrides)
     except TypeError as exc:
         raise ValueError(f"fusion settings: {exc}") from None
 

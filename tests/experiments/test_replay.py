@@ -4,7 +4,7 @@ drones' noise reports rebuilt from their records."""
 
 import json
 import pickle
-from dataclasses import fields, replace
+from dataclasses import asdict, fields, replace
 
 import numpy as np
 import pytest
@@ -16,6 +16,7 @@ from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
 from dronefl.experiments.replay import (
     EpisodeError,
     drone_reports,
+    flown_config,
     format_result,
     load_episode,
     replay,
@@ -23,7 +24,7 @@ from dronefl.experiments.replay import (
 )
 from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
-from dronefl.tracking import Fuser, PositionMeasurement
+from dronefl.tracking import Fuser, PositionMeasurement, fusion_config
 
 DT = 0.2  # s, the scenarios' step
 
@@ -121,6 +122,32 @@ def test_replay_command_writes_json_and_markdown(tmp_path):
     assert data["fusion"]["method"] == "robust"
     assert len(data["targets"]) == 3
     assert (out / "replay.md").read_text().startswith("Replay of")
+
+
+def test_as_flown_starts_from_the_episodes_fusion_and_an_option_given_wins(tmp_path):
+    _, truth = _episode(tmp_path / "ep")
+    _records_checkpoint(tmp_path / "ep", truth)  # --detected-only reads the detected flags
+    runner = CliRunner()
+    refused = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--as-flown"])
+    assert refused.exit_code == 2 and "metrics.json: records no fusion settings" in refused.output
+    flown = replace(fusion_config(load_scenario("case2"), "paper"), gate=None, adaptive=False)
+    config = {"case": 2, "seed": 0, "detected_only": True,
+              "fusion_config": json.dumps(asdict(flown), sort_keys=True)}  # fmt: skip
+    (tmp_path / "ep" / "metrics.json").write_text(json.dumps({"config": config}))
+    episode = load_episode(tmp_path / "ep")
+    assert episode.flown_fusion == flown and episode.detected_only
+    assert flown_config(episode, acceleration_psd=0.5) == replace(flown, acceleration_psd=0.5)
+
+    out = tmp_path / "out"
+    argv = ["replay", str(tmp_path / "ep"), "--as-flown", "--acceleration-psd", "0.5"]
+    result = runner.invoke(app, [*argv, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    used = json.loads((out / "replay.json").read_text())["fusion"]
+    assert used == {**asdict(flown), "acceleration_psd": 0.5}  # not the CLI's defaults
+    assert json.loads((out / "replay.json").read_text())["detected_only"]  # as flown
+    # Without --as-flown the options left out are the scenario's defaults (robust, gated).
+    runner.invoke(app, ["replay", str(tmp_path / "ep"), "--out", str(out)])
+    assert json.loads((out / "replay.json").read_text())["fusion"]["method"] == "robust"
 
 
 def test_bad_episode_folders_fail_with_one_line(tmp_path):

@@ -13,7 +13,7 @@ import pytest
 
 from dronefl.config import load_scenario
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
-from dronefl.experiments.replay import load_episode, replay, replay_config
+from dronefl.experiments.replay import flown_config, load_episode, replay, replay_config
 from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
 
 ARGS = ["--setting", "ours", "--scenario", "case2", "--method", "fixed", "--noise-split",
@@ -87,6 +87,11 @@ def test_reported_noise_flies_resumes_and_replays(quick_pretrained_case2, tmp_pa
     assert again.measurements == saved.fuser.measurements  # what was sent, nothing else
     as_flown = [t.recorded_mse for t in again.targets]
     np.testing.assert_allclose([t.fused_mse for t in again.targets], as_flown, rtol=0.02)
+    # `replay --as-flown` reads those settings from metrics.json instead of the options.
+    assert episode.detected_only and episode.flown_fusion.noise_split == "reported"
+    flown = replay(episode, flown_config(episode), detected_only=True)
+    assert flown.measurements == again.measurements
+    np.testing.assert_allclose([t.fused_mse for t in flown.targets], as_flown, rtol=0.02)
 
 
 def test_reported_noise_needs_the_robust_fusion(tmp_path):
