@@ -180,7 +180,7 @@ def demo(
     )
 
 
-def _as_flags(setting: dict[str, str | int | bool]) -> str:
+def _as_flags(setting: dict[str, str | int | float | bool]) -> str:
     """``TrackConfig`` fields as the ``track`` options that set them (``preset`` is
     ``--config``; a true flag alone, a false one left out)."""
     flags = []
