@@ -28,10 +28,12 @@ from dronefl.results import ResultError
 METRICS: tuple[str, ...] = (
     "prediction_error", "tracking_distance", "uncertainty", "speed_change", "total_cost",
 )  # fmt: skip
+#: The fused tracks' own error beside them: ``tracking_error``, their MSE against the truth (m^2).
+FUSION_METRICS: tuple[str, ...] = ("tracking_error",)
 #: Multi-target set distances of the fused tracks (m), beside the paper's columns.
 SET_METRICS: tuple[str, ...] = ("ospa", "gospa")
 #: Every column a :class:`Table1Row` holds.
-COLUMNS: tuple[str, ...] = METRICS + SET_METRICS
+COLUMNS: tuple[str, ...] = METRICS + FUSION_METRICS + SET_METRICS
 #: Table I's methods on each detector's path: the paper's three; on rendered frames its
 #: centralized baseline is its own, the image model (``centralized-image``).
 TABLE1_METHODS: dict[str, tuple[str, ...]] = {
