@@ -27,6 +27,7 @@ from dronefl.config import (
 from dronefl.fl import TrainingError
 from dronefl.logs import LogError
 from dronefl.perception import DETECTORS
+from dronefl.validation import check_one_of
 
 if TYPE_CHECKING:
     from dronefl.experiments.track import TrackConfig
@@ -83,9 +84,13 @@ OutOption = Annotated[
 
 
 def check_choice(value: str | None, choices: tuple[str, ...], option: str) -> None:
-    """Reject ``value`` unless it is one of ``choices`` (None passes)."""
-    if value is not None and value not in choices:
-        raise fail(f"{option}: {value!r} is not one of {', '.join(choices)}")
+    """Reject ``value`` (exit 2, one line) unless it is one of ``choices`` (None passes)."""
+    if value is None:
+        return
+    try:
+        check_one_of(value, choices, option)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
 
 
 @app.command()

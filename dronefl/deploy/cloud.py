@@ -61,6 +61,7 @@ from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
 from dronefl.tracking.fusion import CONSTANT_SPEED_PSD, NOISE_SPLITS, constant_speed_q
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
+from dronefl.validation import check_one_of
 from dronefl.wire import (
     ControlMessage,
     NoiseReportMessage,
@@ -121,23 +122,11 @@ class CloudSettings:
 
     def __post_init__(self) -> None:
         constant_speed_q(self.constant_speed_psd)
-        if self.planner_distance not in DISTANCE_POINTS:
-            raise ValueError(
-                f"--planner-distance: {self.planner_distance!r} is not one of "
-                f"{', '.join(DISTANCE_POINTS)}"
-            )
-        if self.preset not in PRESETS:
-            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
-        if self.noise_split not in NOISE_SPLITS:
-            raise ValueError(
-                f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
-            )
-        if self.method not in DEPLOY_METHODS:
-            raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
-        if self.label_drones not in LABEL_DRONES:
-            raise ValueError(
-                f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
-            )
+        check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
+        check_one_of(self.preset, PRESETS, "--config")
+        check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
+        check_one_of(self.method, DEPLOY_METHODS, "--method")
+        check_one_of(self.label_drones, LABEL_DRONES, "--label-drones")
         for name in ("duration", "fl_period", "deadline_ms", "start_timeout", "round_timeout"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")

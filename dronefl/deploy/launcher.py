@@ -33,6 +33,7 @@ from dronefl.fl.records import PRESETS
 from dronefl.planning import DISTANCE_POINTS
 from dronefl.tracking.fusion import NOISE_SPLITS, constant_speed_q
 from dronefl.tracking.labels import LABEL_DRONES
+from dronefl.validation import check_one_of
 
 HOST = "127.0.0.1"
 
@@ -69,23 +70,15 @@ class DeployConfig:
     constant_speed_psd: float | None = None
 
     def __post_init__(self) -> None:
-        if self.noise_split not in NOISE_SPLITS:
-            raise ValueError(
-                f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
-            )
+        check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
         if self.net_reports and self.noise_split != "reported":
             raise ValueError("--net-reports: needs --noise-split reported")
-        if self.preset not in PRESETS:
-            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
+        check_one_of(self.preset, PRESETS, "--config")
         for name in ("epochs", "lr"):  # unset: the preset's, as `dronefl track`
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(PRESETS[self.preset], name))
-        if self.method not in DEPLOY_METHODS:
-            raise ValueError(f"--method: {self.method!r} is not one of {', '.join(DEPLOY_METHODS)}")
-        if self.label_drones not in LABEL_DRONES:
-            raise ValueError(
-                f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
-            )
+        check_one_of(self.method, DEPLOY_METHODS, "--method")
+        check_one_of(self.label_drones, LABEL_DRONES, "--label-drones")
         for name in ("duration", "fl_period", "deadline_ms", "start_timeout", "lr"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
@@ -93,11 +86,7 @@ class DeployConfig:
             raise ValueError(f"--epochs: must be >= 1, got {self.epochs}")
         if not 1024 <= self.base_port <= 65000:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
-        if self.planner_distance not in DISTANCE_POINTS:
-            raise ValueError(
-                f"--planner-distance: {self.planner_distance!r} is not one of "
-                f"{', '.join(DISTANCE_POINTS)}"
-            )
+        check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
 
     def ports(self, scenario: Scenario) -> dict[str, int]:

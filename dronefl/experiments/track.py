@@ -87,6 +87,7 @@ from dronefl.tracking import (
 from dronefl.tracking.fusion import NOISE_SPLITS, TUNED_CONSTANT_SPEED_PSD, constant_speed_q
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.tracking.reports import NoiseReporter, detected_now
+from dronefl.validation import check_one_of
 from dronefl.wire import ControlMessage, NoiseReportMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -169,8 +170,7 @@ def setting_fields(setting: str, **chosen: str | int | bool | None) -> dict:
     replaced by its value in ``chosen`` where that is not ``None`` (an option given on the
     command line wins over the setting); raises ``ValueError`` naming ``--setting`` or the
     unknown field."""
-    if setting not in SETTINGS:
-        raise ValueError(f"--setting: {setting!r} is not one of {', '.join(SETTINGS)}")
+    check_one_of(setting, SETTINGS, "--setting")
     unknown = sorted(set(chosen) - set(SETTING_FIELDS))
     if unknown:
         raise ValueError(f"setting_fields: {', '.join(unknown)} not a setting field")
@@ -262,46 +262,29 @@ class TrackConfig:
     resume: bool = False
 
     def __post_init__(self) -> None:
-        if self.preset not in PRESETS:
-            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
+        check_one_of(self.preset, PRESETS, "--config")
         for name in ("epochs", "lr"):  # unset: the preset's
             if getattr(self, name) is None:
                 object.__setattr__(self, name, getattr(PRESETS[self.preset], name))
-        if self.method not in TRACK_METHODS:
-            raise ValueError(f"--method: {self.method!r} is not one of {', '.join(TRACK_METHODS)}")
-        if self.labels not in LABEL_SOURCES:
-            raise ValueError(f"--labels: {self.labels!r} is not one of {', '.join(LABEL_SOURCES)}")
-        if self.label_drones not in LABEL_DRONES:
-            raise ValueError(
-                f"--label-drones: {self.label_drones!r} is not one of {', '.join(LABEL_DRONES)}"
-            )
-        if self.fusion not in FUSION_METHODS:
-            raise ValueError(f"--fusion: {self.fusion!r} is not one of {', '.join(FUSION_METHODS)}")
-        if self.noise_split not in NOISE_SPLITS:
-            raise ValueError(
-                f"--noise-split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
-            )
+        check_one_of(self.method, TRACK_METHODS, "--method")
+        check_one_of(self.labels, LABEL_SOURCES, "--labels")
+        check_one_of(self.label_drones, LABEL_DRONES, "--label-drones")
+        check_one_of(self.fusion, FUSION_METHODS, "--fusion")
+        check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
         if self.noise_split == "reported" and self.fusion != "robust":
             raise ValueError("--noise-split reported: needs --fusion robust")
         if self.net_reports and self.noise_split != "reported":
             raise ValueError("--net-reports: needs --noise-split reported")
         if self.track_psd is not None and not (0 < self.track_psd < math.inf):
             raise ValueError(f"--track-psd: must be a positive number, got {self.track_psd}")
-        if self.planner_distance not in DISTANCE_POINTS:
-            raise ValueError(
-                f"--planner-distance: {self.planner_distance!r} is not one of "
-                f"{', '.join(DISTANCE_POINTS)}"
-            )
+        check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "
                 "path renders: use --detector yolo"
             )
-        if self.weights_dtype not in WEIGHT_DTYPES:
-            raise ValueError(
-                f"--weights-dtype: {self.weights_dtype!r} is not one of {', '.join(WEIGHT_DTYPES)}"
-            )
+        check_one_of(self.weights_dtype, WEIGHT_DTYPES, "--weights-dtype")
         for name in ("duration", "fl_period", "pretrain_seconds", "lr"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
