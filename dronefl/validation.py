@@ -1,5 +1,9 @@
 """The check every configuration makes of a named choice, with one message for all of them:
-``--option: 'x' is not one of a, b, c``."""
+``--option: 'x' is not one of a, b, c``.
+
+:class:`~dronefl.experiments.pretrain.PretrainSpec` keeps its own copy of the check: its
+module's source is part of the pretraining cache key (``TRAINING_CODE``), so editing it
+would retrain every cached model for no change in the weights."""
 
 from __future__ import annotations
 

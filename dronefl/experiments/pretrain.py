@@ -49,7 +49,6 @@ from dronefl.fl.simulation import run_federated
 from dronefl.models.image import ImageModelConfig
 from dronefl.models.model import PredictorConfig
 from dronefl.progress import progress_bar
-from dronefl.validation import check_one_of
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 PRETRAIN_SEED = 1000
@@ -82,7 +81,8 @@ class PretrainSpec:
     preset: str = "ours"
 
     def __post_init__(self) -> None:
-        check_one_of(self.preset, PRESETS, "--config")
+        if self.preset not in PRESETS:
+            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         if self.kind not in KINDS:
             raise ValueError(f"pretrained model kind must be one of {KINDS}, got {self.kind!r}")
         if not self.duration > 0:
