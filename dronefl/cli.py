@@ -1251,6 +1251,7 @@ def cloud(
     from dronefl.deploy.cloud import CloudSettings
     from dronefl.deploy.superlink import SuperLinkSettings, run_cloud
     from dronefl.fl.records import PRESETS, closed_loop_settings
+    from dronefl.tracking.fusion import constant_speed_q
 
     with _deploy_errors():
         load_scenario(scenario)
@@ -1277,7 +1278,7 @@ def cloud(
             noise_split=noise_split,
             detected_only=detected_only,
             planner_distance=planner_distance,
-            **({} if constant_speed_psd is None else {"constant_speed_psd": constant_speed_psd}),
+            constant_speed_psd=constant_speed_q(constant_speed_psd),
         )
         fl = closed_loop_settings(
             preset,

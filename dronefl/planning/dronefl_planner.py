@@ -13,6 +13,7 @@ from dronefl.planning.base import Plan, PlanCost, Planner
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking.fusion import TrackForecast
 from dronefl.types import DroneState
+from dronefl.validation import check_one_of
 
 #: Most drones that may see one target next step: the uncertainty lookup table has 2^k rows.
 MAX_OBSERVERS = 16
@@ -64,11 +65,7 @@ class PlannerConfig:
     distance_at: str = "next"
 
     def __post_init__(self) -> None:
-        if self.distance_at not in DISTANCE_POINTS:
-            raise ValueError(
-                f"distance_at: must be one of {', '.join(DISTANCE_POINTS)}, "
-                f"got {self.distance_at!r}"
-            )
+        check_one_of(self.distance_at, DISTANCE_POINTS, "distance_at")
         for name in ("alpha", "omega", "min_distance"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
