@@ -15,12 +15,13 @@ round:
 
 ``--pooled`` trains the same model on all drones' pooled training windows instead (the
 ``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, the
-local optimiser (``--optimizer adam|sgd``) and its lr, batch size, weighting, FedProx's mu on
-any model (``--proximal-mu``), SCAFFOLD's drift correction (``--scaffold exact|path``, the
-library's :func:`~dronefl.models.train.drift_correction`), AdaIN slopes kept at their start
-(``--freeze-style-slope``), a server optimiser (``--server-opt adam|yogi --server-lr``:
-Flower's FedAdam / FedYogi update, checked against Flower in ``tests/fl/test_fl_diagnose.py``),
-rounds and the hold-out:
+local optimiser (``--optimizer adam|sgd``) and its lr and schedule (``--lr-decay``, or a step
+``--lr-step-round R --lr-step-factor F`` as ``--config metric-scaffold-step``), batch size,
+weighting, FedProx's mu on any model (``--proximal-mu``), SCAFFOLD's drift correction
+(``--scaffold exact|path``, the library's :func:`~dronefl.models.train.drift_correction`),
+AdaIN slopes kept at their start (``--freeze-style-slope``), a server optimiser (``--server-opt
+adam|yogi --server-lr``: Flower's FedAdam / FedYogi update, checked against Flower in
+``tests/fl/test_fl_diagnose.py``), rounds and the hold-out:
 ``--validation`` trains on the first 80 % of each drone's training part and evaluates on the
 rest (never the test windows). Numbers claimed in the README are confirmed with
 ``dronefl fl-offline`` (the real Flower path).
@@ -153,6 +154,13 @@ def splits_of(settings: FlSettings, validation: bool) -> dict[int, tuple[WindowS
     return out
 
 
+def round_lr(args: argparse.Namespace, r: int) -> float:
+    """The local lr of round ``r``: ``--lr`` x decay^(r - 1), x the step factor after the
+    step round."""
+    step = args.lr_step_factor if 0 < args.lr_step_round < r else 1.0
+    return args.lr * args.lr_decay ** (r - 1) * step
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("run_dir")
@@ -162,6 +170,13 @@ def main() -> None:
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--optimizer", choices=OPTIMIZERS, default="adam", help="local optimiser")
     p.add_argument("--lr-decay", type=float, default=1.0, help="lr x decay^(round - 1)")
+    p.add_argument(
+        "--lr-step-round",
+        type=int,
+        default=0,
+        help="rounds after this one train with lr x --lr-step-factor (0: no step)",
+    )
+    p.add_argument("--lr-step-factor", type=float, default=0.1)
     p.add_argument("--batch", type=int, default=128)
     p.add_argument("--stride", type=int, default=10)
     p.add_argument("--seed", type=int, default=0)
@@ -238,7 +253,8 @@ def main() -> None:
         f"{args.method} {model_config.adain_sites if model_config.adain else 'no AdaIN'} "
         f"head init {model_config.head_style_init} box size {model_config.box_size} "
         f"E={args.epochs} {args.optimizer} lr={args.lr} "
-        f"decay={args.lr_decay} batch={args.batch} weighting={args.weighting} "
+        f"decay={args.lr_decay} step {args.lr_step_factor} after round {args.lr_step_round} "
+        f"batch={args.batch} weighting={args.weighting} "
         f"server momentum {args.server_momentum} mu {args.proximal_mu} "
         f"frozen slopes {args.freeze_style_slope} windows per drone (train/eval): "
         + ", ".join(f"{d}: {len(tr)}/{len(te)}" for d, (tr, te) in splits.items())
@@ -250,9 +266,12 @@ def main() -> None:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             data = WindowSet.concat([splits[d][0] for d in members])
             for r in range(1, args.rounds + 1):
-                train_local(
-                    model, data, replace(settings.train_config(r, g), optimizer=args.optimizer)
+                config = replace(
+                    settings.train_config(r, g),
+                    lr=round_lr(args, r),
+                    optimizer=args.optimizer,
                 )
+                train_local(model, data, config)
                 if r % args.every == 0 or r == args.rounds:
                     test = {d: evaluate(model, splits[d][1]) for d in members}
                     print(
@@ -283,10 +302,9 @@ def main() -> None:
         for d in drones:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)
-            # Adam's lr decays as lr * decay^(round - 1).
             config = replace(
                 settings.train_config(r, d),
-                lr=args.lr * args.lr_decay ** (r - 1),
+                lr=round_lr(args, r),
                 optimizer=args.optimizer,
             )
             prox = proximal_term(global_state, args.proximal_mu) if args.proximal_mu else None

@@ -51,6 +51,8 @@ AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum")
 #: Client-drift corrections (``--drift-correction``): none (FedAvg's local steps), or
 #: SCAFFOLD's control variates (Karimireddy et al., 2020, option II).
 DRIFT_CORRECTIONS = ("none", "scaffold")
+#: The factor on the lr in the last rounds of a stepped schedule (``lr_step_at`` < 1).
+LR_STEP_FACTOR = 0.1
 
 
 #: The :class:`FlSettings` fields that say where a run reads and writes, not what it trains.
@@ -92,7 +94,9 @@ class FlSettings:
     :class:`~dronefl.models.train.TrainConfig`); ``drift_correction`` one of
     :data:`DRIFT_CORRECTIONS` (``scaffold``: every drone keeps a control variate c_i, the cloud
     averages them into c, sent beside the weights, and the local steps follow
-    ``g_i - c_i + c``; needs ``optimizer = "sgd"``). The
+    ``g_i - c_i + c``; needs ``optimizer = "sgd"``); ``lr_step_at`` the fraction of the
+    rounds trained at ``lr``, the rest at ``lr`` x :data:`LR_STEP_FACTOR` (1.0: a constant
+    lr; see :meth:`lr_of`). The
     defaults are the setting the closed loop's models are pretrained with; :data:`PRESETS`
     names the paper's and the later ``metric`` and ``metric-sgd`` ones.
     """
@@ -123,6 +127,7 @@ class FlSettings:
     box_size: str = "image"
     optimizer: str = "adam"
     drift_correction: str = "none"
+    lr_step_at: float = 1.0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -156,6 +161,8 @@ class FlSettings:
             raise SettingsError(f"train-fraction: must be in (0, 1], got {self.train_fraction}")
         if not self.lr > 0 or self.proximal_mu < 0:
             raise SettingsError("lr must be > 0 and proximal_mu >= 0")
+        if not 0.0 < self.lr_step_at <= 1.0:
+            raise SettingsError(f"lr-step-at: must be in (0, 1], got {self.lr_step_at}")
         if self.aggregation not in AGGREGATIONS:
             raise SettingsError(
                 f"aggregation: {self.aggregation!r} is not one of {', '.join(AGGREGATIONS)}"
@@ -222,11 +229,19 @@ class FlSettings:
         """Local training of ``drone_id`` in ``server_round``, seeded by both."""
         return TrainConfig(
             self.epochs,
-            self.lr,
+            self.lr_of(server_round),
             self.batch_size,
             self.seed_for(server_round, drone_id),
             self.optimizer,
         )
+
+    def lr_of(self, server_round: int) -> float:
+        """The local lr of ``server_round``: ``lr``, and ``lr`` x :data:`LR_STEP_FACTOR` in
+        the rounds after the first round(``lr_step_at`` x ``rounds``) (1.0: every round at
+        ``lr``, also past ``rounds``, as a closed loop's online rounds may go)."""
+        if self.lr_step_at < 1.0 and server_round > round(self.lr_step_at * self.rounds):
+            return self.lr * LR_STEP_FACTOR
+        return self.lr
 
     def seed_for(self, server_round: int, drone_id: int) -> int:
         return self.seed * 1_000_003 + server_round * 1_009 + drone_id
@@ -242,8 +257,12 @@ class FlSettings:
     def training_key(self) -> dict[str, str | int | float | bool]:
         """Every setting that decides what a run trains, i.e. all but where it reads and
         writes and whether it resumes (:data:`WHERE_FIELDS`): two runs with equal keys train
-        the same weights."""
-        return {k: v for k, v in asdict(self).items() if k not in WHERE_FIELDS}
+        the same weights. A constant lr (``lr_step_at`` 1.0) leaves ``lr_step_at`` out, so
+        the folders trained before the lr step existed keep their key."""
+        key = {k: v for k, v in asdict(self).items() if k not in WHERE_FIELDS}
+        if self.lr_step_at == 1.0:
+            del key["lr_step_at"]
+        return key
 
     def to_run_config(self) -> dict[str, str | int | float | bool]:
         """As a Flower run config (kebab-case keys, as in ``pyproject.toml``)."""
@@ -498,6 +517,7 @@ _PRESET_FIELDS = (
     "box_size",
     "optimizer",
     "drift_correction",
+    "lr_step_at",
 )
 
 
@@ -516,6 +536,7 @@ class Preset:
     box_size: str
     optimizer: str
     drift_correction: str = "none"
+    lr_step_at: float = 1.0
 
     def apply(self, settings: FlSettings) -> FlSettings:
         """``settings`` with this preset's training setting (the drift correction only for
@@ -540,7 +561,10 @@ def _default(name: str) -> object:
 #: with SGD (momentum 0.9, lr 3e-4) instead of Adam on the drones and in the pooled baselines
 #: (chosen on the tuning recording with seed 12, validation windows only; README);
 #: ``metric-scaffold``: ``metric-sgd`` with SCAFFOLD's drift correction (chosen on the Case 2
-#: tuning recordings with seeds 10 and 11, validation windows only; README).
+#: tuning recordings with seeds 10 and 11, validation windows only; README);
+#: ``metric-scaffold-step``: ``metric-scaffold`` with the lr x 0.1 in the last fifth of the
+#: rounds (chosen on the Case 3 tuning recordings with seeds 10-12, validation windows only;
+#: README).
 PRESETS: dict[str, Preset] = {
     "ours": Preset("ours", *(_default(k) for k in _PRESET_FIELDS)),
     "paper": Preset("paper", 10, 1e-3, 128, "encoder", "identity", "image", "adam"),
@@ -548,6 +572,10 @@ PRESETS: dict[str, Preset] = {
     "metric-sgd": Preset("metric-sgd", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd"),
     "metric-scaffold": Preset(
         "metric-scaffold", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold"
+    ),
+    "metric-scaffold-step": Preset(
+        "metric-scaffold-step",
+        *(10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold", 0.8),
     ),
 }
 
@@ -584,4 +612,5 @@ def closed_loop_settings(
         labels="tracks",
         weights_dtype=weights_dtype,
         train_fraction=1.0,
+        lr_step_at=1.0,
     )

@@ -16,6 +16,7 @@ from dronefl.fl.records import (
     SettingsError,
     TrainInstructions,
     WeightLayout,
+    closed_loop_settings,
     to_arrays,
     to_state,
 )
@@ -130,3 +131,28 @@ def test_presets_set_the_training_and_the_adain_placement():
         FlSettings("r", "o", box_size="pixels")
     with pytest.raises(SettingsError, match="adain_sites"):
         FlSettings("r", "o", adain_sites="decoder")
+
+
+def test_the_stepped_lr_drops_tenfold_in_the_last_fifth_of_the_rounds():
+    step = PRESETS["metric-scaffold-step"].apply(FlSettings("r", "o", rounds=50))
+    assert step == replace(PRESETS["metric-scaffold"].apply(FlSettings("r", "o")), lr_step_at=0.8)
+    assert [step.train_config(r, 1).lr for r in (1, 40)] == [3e-4, 3e-4]
+    assert [step.train_config(r, 2).lr for r in (41, 50)] == pytest.approx([3e-5, 3e-5])
+    # Pretraining's 20 rounds step after round 16; every method of the preset steps alike.
+    assert replace(step, rounds=20).lr_of(16) == 3e-4
+    assert replace(step, rounds=20).lr_of(17) == pytest.approx(3e-5)
+    local = PRESETS["metric-scaffold-step"].apply(FlSettings("r", "o", method="local"))
+    assert local.lr_of(50) == pytest.approx(3e-5) and local.drift_correction == "none"
+    # A constant lr keeps the key of the folders trained before the step existed.
+    assert "lr_step_at" not in PRESETS["metric-scaffold"].apply(FlSettings("r", "o")).training_key()
+    assert step.training_key()["lr_step_at"] == 0.8
+    assert FlSettings.from_run_config(step.to_run_config()) == step
+    with pytest.raises(SettingsError, match="lr-step-at: must be in"):
+        FlSettings("r", "o", lr_step_at=0.0)
+
+
+def test_the_closed_loop_trains_every_online_round_at_one_lr():
+    settings = closed_loop_settings(
+        "metric-scaffold-step", "dronefl", past_steps=10, stride=2, epochs=1, lr=3e-4, seed=0
+    )
+    assert settings.lr_step_at == 1.0 and settings.lr_of(settings.rounds + 1) == 3e-4
