@@ -20,9 +20,9 @@ from dronefl.experiments.track import TrackConfig, setting_fields
 #: Table I's methods with the projection detector (the image baseline flies on frames only).
 TRACK_METHODS = TABLE1_METHODS["projection"]
 SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
-#: Short settings: 20 s of crop field and 2 FL rounds to pretrain, 18 s episodes with an FL
+#: Short settings: 20 s of crop field and 1 FL round to pretrain, 18 s episodes with an FL
 #: round (of one local epoch) every 8 s, no GIF.
-SHORT = ["--pretrain-rounds", "2", "--pretrain-seconds", "20", "--duration", "18",
+SHORT = ["--pretrain-rounds", "1", "--pretrain-seconds", "20", "--duration", "18",
          "--fl-period", "8", "--epochs", "1", "--no-animate"]  # fmt: skip
 
 
@@ -98,7 +98,7 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     before = {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")}
     base = TrackConfig(
         scenario=load_scenario(SCENARIO), out=out, duration=18.0, fl_period=8.0,
-        pretrained=table_dir / "pretrained", pretrain_rounds=2, pretrain_seconds=20.0,
+        pretrained=table_dir / "pretrained", pretrain_rounds=1, pretrain_seconds=20.0,
         **setting_fields("recommended", epochs=1),  # what `track` flew: its default setting
     )  # fmt: skip
 
