@@ -573,11 +573,10 @@ PRESETS: dict[str, Preset] = {
     "metric-scaffold": Preset(
         "metric-scaffold", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold"
     ),
-    "metric-scaffold-step": Preset(
-        "metric-scaffold-step",
-        *(10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold", 0.8),
-    ),
 }
+PRESETS["metric-scaffold-step"] = replace(
+    PRESETS["metric-scaffold"], name="metric-scaffold-step", lr_step_at=0.8
+)
 
 
 def closed_loop_settings(
