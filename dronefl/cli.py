@@ -1465,11 +1465,12 @@ def main() -> None:
 def leave(code: int) -> NoReturn:
     """Exit with ``code``, also after Ctrl-C in a federated round.
 
-    Flower's simulation engine, stopped by Ctrl-C, shuts Ray down but leaves its worker threads
-    (not daemons) blocked in ``ray.get`` on actors that no longer exist, and the interpreter
-    would wait for them forever (:data:`dronefl.fl.simulation.ENGINE_INTERRUPTED`). Then the
-    threads get :data:`EXIT_GRACE_S` s to finish, Ray is shut down if it is still up, and the
-    process ends at once. Results and checkpoints are written atomically, so nothing
+    Flower's simulation engine, stopped by Ctrl-C, has killed its actors but leaves Ray up and
+    its worker threads (not daemons) ending, and the interpreter could wait on threads that
+    never end (:data:`dronefl.fl.simulation.ENGINE_INTERRUPTED`). Then the threads get
+    :data:`EXIT_GRACE_S` s to finish, Ray is shut down (only after them: a thread touching Ray
+    after its shutdown makes Ray end the process with exit code 1), and the process ends at
+    once. Results and checkpoints are written atomically, so nothing
     half-written is left."""
     simulation = sys.modules.get("dronefl.fl.simulation")
     if simulation is None or not simulation.ENGINE_INTERRUPTED.is_set():

@@ -20,6 +20,7 @@ from contextlib import contextmanager
 from typing import TypeVar
 
 from flwr.app import Context
+from flwr.server.superlink.fleet.vce.backend import Backend
 from flwr.serverapp import Grid, ServerApp
 from flwr.simulation import run_simulation
 
@@ -41,9 +42,9 @@ os.environ.setdefault("RAY_worker_niceness", "0")
 os.environ.setdefault("RAY_gcs_rpc_server_reconnect_timeout_s", "20")
 
 
-#: Set once Ctrl-C has stopped a simulation engine in this process. Flower's engine then shuts
-#: Ray down, but its worker threads (not daemons) stay blocked in ``ray.get`` for actors that no
-#: longer exist, so the interpreter cannot exit normally (``dronefl.cli.leave`` ends it).
+#: Set once Ctrl-C has stopped a simulation engine in this process. Flower's engine then kills
+#: its actors (:func:`_kill_every_actor`) but leaves Ray up and its worker threads (not daemons)
+#: ending, so the interpreter cannot exit normally (``dronefl.cli.leave`` ends it).
 ENGINE_INTERRUPTED = threading.Event()
 
 
@@ -57,17 +58,59 @@ def _interrupt(signum: int, frame: object) -> None:
     signal.default_int_handler(signum, frame)
 
 
+def _kill_every_actor(backend: Backend) -> None:
+    """Stop Flower's Ray backend after Ctrl-C without shutting Ray down.
+
+    Interrupted, Flower's engine terminates the backend while its worker threads still wait in
+    ``ray.get`` on busy ClientApp actors. The stock ``RayBackend.terminate`` asks only the idle
+    actors to stop and shuts Ray down at once; a worker thread that then touches Ray makes Ray
+    end the whole process (exit code 1, "The core worker has already been shutdown") before
+    ``dronefl`` can report the interrupt. This kills every actor, idle or busy, so each waiting
+    thread gets an error at once and, the engine's stop event being set, ends;
+    ``dronefl.cli.leave`` joins those threads and only then shuts Ray down."""
+    import ray
+
+    pool = backend.pool  # type: ignore[attr-defined]
+    if pool is not None:
+        busy = getattr(pool, "_future_to_actor", {}).values()
+        for actor in [*pool.pool, *busy]:
+            ray.kill(actor, no_restart=True)
+
+
+@contextmanager
+def _interruptible_backend() -> Iterator[None]:
+    """While open, Flower's Ray backend terminates through :func:`_kill_every_actor` after a
+    Ctrl-C (:data:`ENGINE_INTERRUPTED`) and as usual otherwise. Ray is imported here, after
+    this module has set Ray's environment variables."""
+    from flwr.server.superlink.fleet.vce.backend.raybackend import RayBackend
+
+    stock = RayBackend.terminate
+
+    def terminate(backend: Backend) -> None:
+        if ENGINE_INTERRUPTED.is_set():
+            _kill_every_actor(backend)
+        else:
+            stock(backend)
+
+    RayBackend.terminate = terminate  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        RayBackend.terminate = stock  # type: ignore[method-assign]
+
+
 def _run_engine(**kwargs: object) -> None:
-    """``run_simulation(**kwargs)``, noting a Ctrl-C in :data:`ENGINE_INTERRUPTED`. The
-    Ctrl-C handler is only replaced where Python's own is installed (in the main thread): a
-    process that inherited SIGINT ignored keeps ignoring it."""
+    """``run_simulation(**kwargs)`` with :func:`_interruptible_backend`, noting a Ctrl-C in
+    :data:`ENGINE_INTERRUPTED`. The Ctrl-C handler is only replaced where Python's own is
+    installed (in the main thread): a process that inherited SIGINT ignored keeps ignoring it."""
     previous = signal.getsignal(signal.SIGINT)
     ours = previous is signal.default_int_handler
     ours = ours and threading.current_thread() is threading.main_thread()
     if ours:
         signal.signal(signal.SIGINT, _interrupt)
     try:
-        run_simulation(**kwargs)  # type: ignore[arg-type]
+        with _interruptible_backend():
+            run_simulation(**kwargs)  # type: ignore[arg-type]
     except KeyboardInterrupt:
         ENGINE_INTERRUPTED.set()
         raise

@@ -10,11 +10,15 @@ import signal
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import psutil
 import pytest
+import ray
+from flwr.server.superlink.fleet.vce.backend.raybackend import RayBackend
 
 from dronefl.fl.checkpoint import load_checkpoint
+from dronefl.fl.simulation import ENGINE_INTERRUPTED, _interruptible_backend
 
 TINY = ["--scenario", "case1", "--duration", "40", "--stride", "5", "--seeds", "3", "--epochs", "2"]
 #: Seconds the interrupted process may take to end (the grace for stuck threads is 5 s).
@@ -82,3 +86,28 @@ def _alive(process: psutil.Process) -> bool:
         return process.is_running() and process.status() != psutil.STATUS_ZOMBIE
     except psutil.NoSuchProcess:
         return False
+
+
+def test_after_ctrl_c_the_engine_kills_busy_actors_too_and_leaves_ray_up(monkeypatch):
+    """Flower's ``RayBackend.terminate`` stops the idle actors and shuts Ray down while busy
+    ones still have worker threads waiting on them; after Ctrl-C ours kills both kinds and
+    leaves the shutdown to ``dronefl.cli.leave``, once the threads have ended."""
+    calls: list[str] = []
+    monkeypatch.setattr(ray, "kill", lambda actor, no_restart: calls.append(f"kill {actor}"))
+    monkeypatch.setattr(ray, "shutdown", lambda: calls.append("shutdown"))
+    idle_only = SimpleNamespace(terminate_all_actors=lambda: calls.append("stop idle"))
+    pool = SimpleNamespace(**vars(idle_only), pool=["idle"], _future_to_actor={"job": "busy"})
+    backend = SimpleNamespace(pool=pool)
+    stock = RayBackend.terminate
+
+    with _interruptible_backend():
+        RayBackend.terminate(backend)  # type: ignore[arg-type]
+        assert calls == ["stop idle", "shutdown"]  # no Ctrl-C: Flower's own
+        calls.clear()
+        ENGINE_INTERRUPTED.set()
+        try:
+            RayBackend.terminate(backend)  # type: ignore[arg-type]
+        finally:
+            ENGINE_INTERRUPTED.clear()
+        assert calls == ["kill idle", "kill busy"]
+    assert RayBackend.terminate is stock
