@@ -335,6 +335,42 @@ def fl_offline(
     typer.echo(f"wrote {out}/ (results.json, fig5_{results.scenario}.png, table.md)")
 
 
+@app.command("fl-compare")
+def fl_compare(
+    results: Annotated[Path, typer.Argument(help="An fl-offline results.json.")],
+    method_a: Annotated[str, typer.Argument(help="Method A, read from RESULTS.")],
+    method_b: Annotated[str, typer.Argument(help="Method B, read from RESULTS or --against.")],
+    against: Annotated[
+        Path | None, typer.Option(help="Another results.json to read method B from.")
+    ] = None,
+) -> None:
+    """Paired per-seed comparison of two methods' final test MSE, per drone: the mean
+    difference A - B with its standard error, the seeds on which A is lower, and the paired
+    t-test's p (dronefl.report.paired).
+
+    Example: dronefl fl-compare runs/fl_step/case3/results.json dronefl local
+    """
+    from dronefl.experiments.fl_offline import OfflineResults
+    from dronefl.fl.checkpoint import CheckpointError
+    from dronefl.report.paired import paired_comparison, paired_markdown
+
+    try:
+        first = OfflineResults.load(results)
+        second = OfflineResults.load(against) if against is not None else first
+        blocks = []
+        for method, source, file in ((method_a, first, results), (method_b, second, against)):
+            if method not in source.methods:
+                where = file or results
+                raise ValueError(f"{where}: no method {method!r} (it has {sorted(source.methods)})")
+            blocks.append(source.methods[method])
+        rows = paired_comparison(*blocks)
+    except (CheckpointError, ValueError) as exc:
+        raise fail(str(exc)) from None
+    label_b = method_b if against is None else f"{method_b} ({against.parent.name})"
+    typer.echo(f"{first.scenario}, seeds {' '.join(map(str, rows[0].seeds))}, final test MSE")
+    typer.echo(paired_markdown(rows, method_a, label_b))
+
+
 @app.command("fl-ablation")
 def fl_ablation(
     scenario: Annotated[

@@ -1,0 +1,62 @@
+"""The paired comparison of two methods over seeds (``dronefl fl-compare``), checked by hand."""
+
+import math
+
+import pytest
+from typer.testing import CliRunner
+
+from dronefl.cli import app
+from dronefl.experiments.fl_offline import MethodResult, OfflineResults, SeedResult
+from dronefl.report.paired import paired_comparison
+
+
+def _method(name: str, per_seed: dict[int, dict[int, float]]) -> MethodResult:
+    seeds = tuple(
+        SeedResult(seed, (sum(mse.values()) / len(mse),), mse, (0,), (0,), {}, 1.0)
+        for seed, mse in per_seed.items()
+    )
+    return MethodResult(name, "model", 1, "training", seeds)
+
+
+A = _method("a", {0: {1: 1.0, 2: 0.5}, 1: {1: 2.0, 2: 0.5}, 2: {1: 3.0, 2: 0.5}, 7: {1: 9, 2: 9}})
+B = _method("b", {0: {1: 2.0, 2: 0.5}, 1: {1: 2.0, 2: 0.5}, 2: {1: 5.0, 2: 0.5}})
+
+
+def test_differences_standard_error_wins_and_p_by_hand():
+    one, two = paired_comparison(A, B)
+
+    # Drone 1: d = (-1, 0, -2) over the shared seeds 0-2 (A's seed 7 has no partner).
+    assert one.seeds == (0, 1, 2)
+    assert (one.mean_a, one.mean_b) == (2.0, 3.0) and one.ratio == pytest.approx(2 / 3)
+    assert one.mean_difference == pytest.approx(-1.0)
+    assert one.standard_error == pytest.approx(1 / math.sqrt(3))  # std(d, ddof=1) = 1
+    assert one.wins == 2  # seed 1 is a tie, not a win
+    # t = -1 / (1 / sqrt 3) = -sqrt 3 with 2 dof, whose two-sided p has a closed form:
+    # p = 1 - |t| / sqrt(t^2 + 2) = 1 - sqrt(3 / 5).
+    assert one.p_value == pytest.approx(1 - math.sqrt(3 / 5))
+    # Drone 2: identical errors, no difference to test.
+    assert two.mean_difference == 0.0 and two.wins == 0 and math.isnan(two.p_value)
+
+
+def test_fewer_than_two_shared_seeds_or_other_drones_are_refused():
+    lone = _method("c", {7: {1: 1.0, 2: 1.0}, 8: {1: 1.0, 2: 1.0}})
+    with pytest.raises(ValueError, match="share 0 seed"):
+        paired_comparison(B, lone)
+    other = _method("d", {0: {1: 1.0}, 1: {1: 1.0}})
+    with pytest.raises(ValueError, match=r"drones \(1, 2\).*\(1,\)"):
+        paired_comparison(A, other)
+
+
+def test_the_command_prints_the_table_and_names_a_missing_method(tmp_path):
+    results = tmp_path / "results.json"
+    OfflineResults("case9", "ours", 1, 60.0, 5, 0.0, {"a": A, "b": B}).save(results)
+    runner = CliRunner()
+
+    shown = runner.invoke(app, ["fl-compare", str(results), "a", "b"])
+    assert shown.exit_code == 0, shown.output
+    assert "case9, seeds 0 1 2" in shown.output
+    assert "| 1 | 2.000 | 3.000 | 0.67 | -1.000 ± 0.577 | 2 of 3 seeds | 0.23 |" in shown.output
+
+    missing = runner.invoke(app, ["fl-compare", str(results), "a", "local"])
+    assert missing.exit_code == 2
+    assert f"{results}: no method 'local'" in missing.output
