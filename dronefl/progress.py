@@ -10,9 +10,10 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 @contextmanager
 def progress_bar(
-    description: str, total: int, enabled: bool = True
+    description: str, total: int, enabled: bool = True, completed: int = 0
 ) -> Iterator[Callable[[int], None]]:
-    """Context manager yielding ``advance(n=1)``; draws a bar on stderr when ``enabled``."""
+    """Context manager yielding ``advance(n=1)``; draws a bar on stderr when ``enabled``,
+    starting at ``completed`` of ``total`` (work done before, e.g. resumed rounds)."""
     if not enabled:
         yield lambda n=1: None
         return
@@ -23,5 +24,5 @@ def progress_bar(
         TimeRemainingColumn(),
     )
     with Progress(*columns, transient=False) as bar:
-        task = bar.add_task(description, total=total)
+        task = bar.add_task(description, total=total, completed=completed)
         yield lambda n=1: bar.advance(task, n)

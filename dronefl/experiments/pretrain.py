@@ -167,9 +167,15 @@ def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[st
         )
     if spec.kind == "image":
         return pretrain_image(spec, folder, progress)
-    settings = spec.settings(folder)
+    # A pretraining stopped early (Ctrl-C, a kill) goes on from its last checkpoint: the
+    # folder's key names the setting and the training code, so a checkpoint there is this run's.
+    settings = dataclasses.replace(spec.settings(folder), resume=True)
+    done = 0
+    if settings.checkpoint_path.is_file():
+        checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
+        done = checkpoint.server_round
     name = f"pretrain {spec.scenario.name} {spec.kind}"
-    with progress_bar(name, spec.rounds, progress) as advance:
+    with progress_bar(name, spec.rounds, progress, completed=done) as advance:
         train = run_federated if spec.kind == "dronefl" else run_centralized
         train(settings, on_round=lambda _: advance(1))
     return load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind).state

@@ -3,6 +3,7 @@ Flower that ends the command quickly, in one line, with no Ray process left behi
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -14,6 +15,7 @@ import pytest
 import torch
 
 from dronefl.config import load_scenario, parse_scenario
+from dronefl.experiments import pretrain as pretrain_module
 from dronefl.experiments.pretrain import PretrainSpec, held_out_mse, pretrain, pretrained_state
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
@@ -200,3 +202,25 @@ def test_the_image_model_is_pretrained_on_rendered_frames_once(tmp_path):
     assert spec.image_dir(tmp_path) != dronefl and dronefl.parent == spec.image_dir(tmp_path).parent
     assert replace(spec, past_steps=8).image_dir(tmp_path) != spec.image_dir(tmp_path)
     assert replace(spec, preset="metric-sgd").image_dir(tmp_path) == spec.image_dir(tmp_path)
+
+
+def test_a_stopped_pretraining_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
+    spec = PretrainSpec(SCENARIO, "centralized", rounds=2, duration=30.0)
+    whole = pretrain(spec, tmp_path / "whole", progress=False)
+    # What a pretraining stopped after its first round (Ctrl-C, a kill) leaves behind: the
+    # recording and round 1's checkpoint.
+    settings = spec.settings(tmp_path / "stopped")
+    shutil.copytree(spec.settings(tmp_path / "whole").run_dir, settings.run_dir)
+    pretrain_module.run_centralized(replace(settings, rounds=1))
+    played: list[int] = []
+    real = pretrain_module.run_centralized
+
+    def spy(settings, on_round):
+        return real(settings, on_round=lambda e: (played.append(e.server_round), on_round(e)))
+
+    monkeypatch.setattr(pretrain_module, "run_centralized", spy)
+    resumed = pretrain(spec, tmp_path / "stopped", progress=False)
+
+    assert played == [2]  # round 1 was not trained again
+    assert resumed.keys() == whole.keys()
+    assert all(torch.equal(resumed[k], whole[k]) for k in whole)  # as if never stopped
