@@ -43,7 +43,7 @@ os.environ.setdefault("RAY_gcs_rpc_server_reconnect_timeout_s", "20")
 
 
 #: Set once Ctrl-C has stopped a simulation engine in this process. Flower's engine then kills
-#: its actors (:func:`_kill_every_actor`) but leaves Ray up and its worker threads (not daemons)
+#: its actors (:func:`_terminate`) but leaves Ray up and its worker threads (not daemons)
 #: ending, so the interpreter cannot exit normally (``dronefl.cli.leave`` ends it).
 ENGINE_INTERRUPTED = threading.Event()
 
@@ -58,16 +58,20 @@ def _interrupt(signum: int, frame: object) -> None:
     signal.default_int_handler(signum, frame)
 
 
-def _kill_every_actor(backend: Backend) -> None:
-    """Stop Flower's Ray backend after Ctrl-C without shutting Ray down.
+def _terminate(backend: Backend) -> None:
+    """Flower's ``RayBackend.terminate``, made safe for Ctrl-C and quiet.
 
-    Interrupted, Flower's engine terminates the backend while its worker threads still wait in
-    ``ray.get`` on busy ClientApp actors. The stock ``RayBackend.terminate`` asks only the idle
-    actors to stop and shuts Ray down at once; a worker thread that then touches Ray makes Ray
-    end the whole process (exit code 1, "The core worker has already been shutdown") before
-    ``dronefl`` can report the interrupt. This kills every actor, idle or busy, so each waiting
-    thread gets an error at once and, the engine's stop event being set, ends;
-    ``dronefl.cli.leave`` joins those threads and only then shuts Ray down."""
+    The stock one asks only the idle ClientApp actors to stop (each then logs "Manually
+    terminating ClientAppActor", which Ray forwards to the terminal when its log monitor gets
+    there before the shutdown) and shuts Ray down at once. Interrupted, Flower's engine calls
+    it while its worker threads still wait in ``ray.get`` on busy actors; a worker thread that
+    touches Ray after the shutdown makes Ray end the whole process (exit code 1, "The core
+    worker has already been shutdown") before ``dronefl`` can report the interrupt.
+
+    This one kills every actor, idle or busy (no log), so each waiting thread gets an error at
+    once and, the engine's stop event being set, ends. Without an interrupt it then shuts Ray
+    down; after Ctrl-C (:data:`ENGINE_INTERRUPTED`) it leaves Ray up, and
+    ``dronefl.cli.leave`` joins the threads and only then shuts Ray down."""
     import ray
 
     pool = backend.pool  # type: ignore[attr-defined]
@@ -75,24 +79,18 @@ def _kill_every_actor(backend: Backend) -> None:
         busy = getattr(pool, "_future_to_actor", {}).values()
         for actor in [*pool.pool, *busy]:
             ray.kill(actor, no_restart=True)
+    if not ENGINE_INTERRUPTED.is_set():
+        ray.shutdown()
 
 
 @contextmanager
 def _interruptible_backend() -> Iterator[None]:
-    """While open, Flower's Ray backend terminates through :func:`_kill_every_actor` after a
-    Ctrl-C (:data:`ENGINE_INTERRUPTED`) and as usual otherwise. Ray is imported here, after
-    this module has set Ray's environment variables."""
+    """While open, Flower's Ray backend terminates through :func:`_terminate`. Ray is
+    imported here, after this module has set Ray's environment variables."""
     from flwr.server.superlink.fleet.vce.backend.raybackend import RayBackend
 
     stock = RayBackend.terminate
-
-    def terminate(backend: Backend) -> None:
-        if ENGINE_INTERRUPTED.is_set():
-            _kill_every_actor(backend)
-        else:
-            stock(backend)
-
-    RayBackend.terminate = terminate  # type: ignore[method-assign]
+    RayBackend.terminate = _terminate  # type: ignore[method-assign]
     try:
         yield
     finally:

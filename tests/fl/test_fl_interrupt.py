@@ -88,21 +88,21 @@ def _alive(process: psutil.Process) -> bool:
         return False
 
 
-def test_after_ctrl_c_the_engine_kills_busy_actors_too_and_leaves_ray_up(monkeypatch):
-    """Flower's ``RayBackend.terminate`` stops the idle actors and shuts Ray down while busy
-    ones still have worker threads waiting on them; after Ctrl-C ours kills both kinds and
-    leaves the shutdown to ``dronefl.cli.leave``, once the threads have ended."""
+def test_the_engine_kills_busy_actors_too_and_after_ctrl_c_leaves_ray_up(monkeypatch):
+    """Flower's ``RayBackend.terminate`` asks the idle actors to stop (each logs a warning) and
+    shuts Ray down while busy ones still have worker threads waiting on them; ours kills both
+    kinds, and after Ctrl-C leaves the shutdown to ``dronefl.cli.leave``, once the threads
+    have ended."""
     calls: list[str] = []
     monkeypatch.setattr(ray, "kill", lambda actor, no_restart: calls.append(f"kill {actor}"))
     monkeypatch.setattr(ray, "shutdown", lambda: calls.append("shutdown"))
-    idle_only = SimpleNamespace(terminate_all_actors=lambda: calls.append("stop idle"))
-    pool = SimpleNamespace(**vars(idle_only), pool=["idle"], _future_to_actor={"job": "busy"})
+    pool = SimpleNamespace(pool=["idle"], _future_to_actor={"job": "busy"})
     backend = SimpleNamespace(pool=pool)
     stock = RayBackend.terminate
 
     with _interruptible_backend():
         RayBackend.terminate(backend)  # type: ignore[arg-type]
-        assert calls == ["stop idle", "shutdown"]  # no Ctrl-C: Flower's own
+        assert calls == ["kill idle", "kill busy", "shutdown"]
         calls.clear()
         ENGINE_INTERRUPTED.set()
         try:
