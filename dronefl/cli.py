@@ -367,8 +367,44 @@ def fl_compare(
     except (CheckpointError, ValueError) as exc:
         raise fail(str(exc)) from None
     label_b = method_b if against is None else f"{method_b} ({against.parent.name})"
-    typer.echo(f"{first.scenario}, seeds {' '.join(map(str, rows[0].seeds))}, final test MSE")
+    seeds = " ".join(map(str, rows[0].seeds))
+    typer.echo(f"{first.scenario}, final test MSE per drone, seeds {seeds}")
     typer.echo(paired_markdown(rows, method_a, label_b))
+
+
+#: Units of Table I's columns, for ``table1-compare``.
+TABLE1_UNITS = {
+    "prediction_error": "m²", "tracking_distance": "m²", "uncertainty": "m²",
+    "speed_change": "m/s", "total_cost": "J", "tracking_error": "m²", "ospa": "m", "gospa": "m",
+}  # fmt: skip
+
+
+@app.command("table1-compare")
+def table1_compare(
+    table: Annotated[Path, typer.Argument(help="A table1 run's table1.csv.")],
+    method_a: Annotated[str, typer.Argument(help="Method A, e.g. dronefl.")],
+    method_b: Annotated[str, typer.Argument(help="Method B, e.g. fixed.")],
+    metrics: Annotated[
+        str, typer.Option(help="Space-separated table1.csv columns to compare.")
+    ] = "prediction_error tracking_distance",
+) -> None:
+    """Paired per-seed comparison of two closed-loop methods of Table I, per scenario and
+    metric: the mean difference A - B with its standard error, the seeds on which A is lower,
+    and the paired t-test's p (dronefl.report.paired).
+
+    Example: dronefl table1-compare runs/table1/table1.csv dronefl fixed
+    """
+    from dronefl.report.paired import paired_markdown, table1_comparison
+
+    try:
+        tables = [(m, table1_comparison(table, method_a, method_b, m)) for m in metrics.split()]
+    except (OSError, ValueError) as exc:
+        raise fail(str(exc)) from None
+    for metric, rows in tables:
+        typer.echo(f"{metric}, seeds {' '.join(map(str, rows[0].seeds))}:")
+        typer.echo(
+            paired_markdown(rows, method_a, method_b, "scenario", TABLE1_UNITS.get(metric, ""))
+        )
 
 
 @app.command("fl-ablation")

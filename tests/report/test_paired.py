@@ -7,7 +7,7 @@ from typer.testing import CliRunner
 
 from dronefl.cli import app
 from dronefl.experiments.fl_offline import MethodResult, OfflineResults, SeedResult
-from dronefl.report.paired import paired_comparison
+from dronefl.report.paired import paired_comparison, table1_comparison
 
 
 def _method(name: str, per_seed: dict[int, dict[int, float]]) -> MethodResult:
@@ -54,9 +54,45 @@ def test_the_command_prints_the_table_and_names_a_missing_method(tmp_path):
 
     shown = runner.invoke(app, ["fl-compare", str(results), "a", "b"])
     assert shown.exit_code == 0, shown.output
-    assert "case9, seeds 0 1 2" in shown.output
+    assert "case9, final test MSE per drone, seeds 0 1 2" in shown.output
     assert "| 1 | 2.000 | 3.000 | 0.67 | -1.000 ± 0.577 | 2 of 3 seeds | 0.23 |" in shown.output
 
     missing = runner.invoke(app, ["fl-compare", str(results), "a", "local"])
     assert missing.exit_code == 2
     assert f"{results}: no method 'local'" in missing.output
+
+
+TABLE1 = """scenario,method,seed,prediction_error,tracking_distance
+case2,fixed,0,1.5,20.0
+case2,fixed,1,1.0,21.0
+case2,dronefl,0,1.0,20.5
+case2,dronefl,1,0.8,21.0
+case2,dronefl,2,0.1,1.0
+case9,dronefl,0,1.0,1.0
+"""
+
+
+def test_table1_rows_pair_each_scenario_s_seeds(tmp_path):
+    path = tmp_path / "table1.csv"
+    path.write_text(TABLE1)
+
+    (case2,) = table1_comparison(path, "dronefl", "fixed", "prediction_error")
+
+    # Seeds 0 and 1 only (fixed has no seed 2; case9 has no fixed): d = (-0.5, -0.2).
+    assert case2.name == "case2" and case2.seeds == (0, 1)
+    assert case2.mean_difference == pytest.approx(-0.35)
+    assert case2.standard_error == pytest.approx(0.15)  # std(d, ddof=1) / sqrt 2 = 0.212 / 1.414
+    assert case2.wins == 2
+    # t = -0.35 / 0.15 with 1 dof (a Cauchy distribution): p = 1 - (2 / pi) atan(|t|).
+    assert case2.p_value == pytest.approx(1 - 2 / math.pi * math.atan(0.35 / 0.15))
+    (distance,) = table1_comparison(path, "dronefl", "fixed", "tracking_distance")
+    assert distance.mean_difference == pytest.approx(0.25) and distance.wins == 0
+    with pytest.raises(ValueError, match=r"table1.csv: no column 'ospa' \(it has prediction_error"):
+        table1_comparison(path, "dronefl", "fixed", "ospa")
+    with pytest.raises(ValueError, match=r"no method 'local' \(it has \['dronefl', 'fixed'\]\)"):
+        table1_comparison(path, "local", "fixed", "prediction_error")
+
+    shown = CliRunner().invoke(app, ["table1-compare", str(path), "dronefl", "fixed"])
+    assert shown.exit_code == 0, shown.output
+    assert "prediction_error, seeds 0 1:" in shown.output
+    assert "| case2 | 0.900 | 1.250 | 0.72 | -0.350 ± 0.150 | 2 of 2 seeds | 0.26 |" in shown.output
