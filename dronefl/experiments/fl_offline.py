@@ -8,7 +8,8 @@ seed, trains every requested method for ``rounds`` rounds on it and writes into 
     results.json          :class:`OfflineResults`: per method and seed the test MSE per round
                           and the final one per drone; mean +- std over seeds
     fig5_<scenario>.png   average test MSE vs round, log scale, every method that was run
-    table.md              final MSE (mean +- std) and DroneFL's reduction against each method
+    table.md              final MSE (mean +- std), DroneFL's reduction against each method,
+                          and DroneFL against `local` paired over the seeds, per drone
 
 How a method trains is set by its ``training`` kind (:mod:`dronefl.fl.methods`):
 ``federated`` methods run on Flower's simulation engine (one Ray start per method and seed);
@@ -48,6 +49,7 @@ from dronefl.models.train import evaluate, train_local
 from dronefl.models.windows import WindowSet, ground_truth_labels, split_windows
 from dronefl.progress import progress_bar
 from dronefl.report.fl_plots import Curve, plot_altitude, plot_fig5
+from dronefl.report.paired import paired_comparison, paired_markdown
 
 #: Called with each finished round (e.g. to advance a progress bar).
 OnRound = Callable[[RoundRecord], None]
@@ -697,6 +699,15 @@ def comparison_table(all_results: list[OfflineResults], methods: tuple[str, ...]
                 f"{reduction(mine.final_test_mse, base.final_test_mse):+.1f}" if ok else ""
             )
         lines.append(f"| {r.scenario} | " + " | ".join(cells) + " |")
+    for r in all_results:
+        mine, alone = r.methods.get("dronefl"), r.methods.get("local")
+        if mine is None or alone is None:
+            continue
+        if len({s.seed for s in mine.seeds} & {s.seed for s in alone.seeds}) < 2:
+            continue
+        lines += ["", f"{r.scenario}: DroneFL against `local` per drone, paired over the seeds "
+                  "(`dronefl fl-compare`):", ""]  # fmt: skip
+        lines.append(paired_markdown(paired_comparison(mine, alone), "dronefl", "local"))
     return "\n".join(lines) + "\n"
 
 

@@ -20,11 +20,13 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy import stats
 
-from dronefl.experiments.fl_offline import MethodResult
+if TYPE_CHECKING:  # fl_offline's table uses this module
+    from dronefl.experiments.fl_offline import MethodResult
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,12 @@ import pytest
 from typer.testing import CliRunner
 
 from dronefl.cli import app
-from dronefl.experiments.fl_offline import MethodResult, OfflineResults, SeedResult
+from dronefl.experiments.fl_offline import (
+    MethodResult,
+    OfflineResults,
+    SeedResult,
+    comparison_table,
+)
 from dronefl.report.paired import paired_comparison, table1_comparison
 
 
@@ -96,3 +101,13 @@ def test_table1_rows_pair_each_scenario_s_seeds(tmp_path):
     assert shown.exit_code == 0, shown.output
     assert "prediction_error, seeds 0 1:" in shown.output
     assert "| case2 | 0.900 | 1.250 | 0.72 | -0.350 ± 0.150 | 2 of 2 seeds | 0.26 |" in shown.output
+
+
+def test_fig5_s_table_pairs_dronefl_with_local_when_both_ran():
+    results = OfflineResults("case9", "ours", 1, 60.0, 5, 0.0, {"dronefl": A, "local": B})
+    table = comparison_table([results], ("dronefl", "local"))
+
+    assert "case9: DroneFL against `local` per drone, paired over the seeds" in table
+    assert "| 1 | 2.000 | 3.000 | 0.67 | -1.000 ± 0.577 | 2 of 3 seeds | 0.23 |" in table
+    alone = OfflineResults("case9", "ours", 1, 60.0, 5, 0.0, {"dronefl": A})
+    assert "paired" not in comparison_table([alone], ("dronefl",))
