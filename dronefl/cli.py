@@ -357,13 +357,11 @@ def fl_compare(
     try:
         first = OfflineResults.load(results)
         second = OfflineResults.load(against) if against is not None else first
-        blocks = []
-        for method, source, file in ((method_a, first, results), (method_b, second, against)):
+        wanted = ((method_a, first, results), (method_b, second, against or results))
+        for method, source, file in wanted:
             if method not in source.methods:
-                where = file or results
-                raise ValueError(f"{where}: no method {method!r} (it has {sorted(source.methods)})")
-            blocks.append(source.methods[method])
-        rows = paired_comparison(*blocks)
+                raise ValueError(f"{file}: no method {method!r} (it has {sorted(source.methods)})")
+        rows = paired_comparison(first.methods[method_a], second.methods[method_b])
     except (CheckpointError, ValueError) as exc:
         raise fail(str(exc)) from None
     label_b = method_b if against is None else f"{method_b} ({against.parent.name})"
@@ -985,12 +983,12 @@ def pretrain(
     centralized model on pooled data; with --image the paper's image model on the rendered
     frames), L_p -> L_f = 1, and print each model's prediction error (MSE, m^2) per drone on
     the held-out last 20 % of the recording. `track` does this on demand (with the same
-    --config; the default is the recommended setting's, metric-scaffold).
+    --config; the default is the recommended setting's, metric-scaffold). A model already in
+    --out is kept; one stopped early goes on from its last round.
 
     Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
     """
-    from dronefl.experiments.pretrain import KINDS, PretrainSpec, held_out_mse
-    from dronefl.experiments.pretrain import pretrain as run
+    from dronefl.experiments.pretrain import KINDS, PretrainSpec, held_out_mse, pretrained_state
 
     spec = load_scenario(scenario)
     if rounds < 1 or past_steps < 1:
@@ -1006,7 +1004,7 @@ def pretrain(
     except ValueError as exc:
         raise fail(str(exc)) from None
     for pretraining in specs:
-        run(pretraining, out)
+        pretrained_state(pretraining, out)
     for pretraining in specs:
         try:
             per_drone = held_out_mse(pretraining, out)

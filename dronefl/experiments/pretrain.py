@@ -151,9 +151,13 @@ class PretrainSpec:
         return self.settings(folder).checkpoint_path
 
 
-def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[str, torch.Tensor]:
-    """Record the crop field (if not yet recorded) and train ``spec.kind``; returns its
-    weights. Runs a Flower simulation for ``dronefl``: never call it inside another one."""
+def pretrain(
+    spec: PretrainSpec, folder: Path, progress: bool = True, done: int = 0
+) -> dict[str, torch.Tensor]:
+    """Record the crop field (if not yet recorded) and train ``spec.kind``, going on from the
+    checkpoint of a pretraining stopped early; returns its weights. ``done``: the rounds that
+    checkpoint holds (where the progress bar starts). Runs a Flower simulation for
+    ``dronefl``: never call it inside another one."""
     data = spec.data_dir(folder)
     if not (data / "ground_truth.npz").is_file():
         simulate(
@@ -170,10 +174,6 @@ def pretrain(spec: PretrainSpec, folder: Path, progress: bool = True) -> dict[st
     # A pretraining stopped early (Ctrl-C, a kill) goes on from its last checkpoint: the
     # folder's key names the setting and the training code, so a checkpoint there is this run's.
     settings = dataclasses.replace(spec.settings(folder), resume=True)
-    done = 0
-    if settings.checkpoint_path.is_file():
-        checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
-        done = checkpoint.server_round
     name = f"pretrain {spec.scenario.name} {spec.kind}"
     with progress_bar(name, spec.rounds, progress, completed=done) as advance:
         train = run_federated if spec.kind == "dronefl" else run_centralized
@@ -189,11 +189,13 @@ def pretrained_state(
         path = spec.model_path(folder)
         return load_image_state(path) if path.is_file() else pretrain(spec, folder, progress)
     settings = spec.settings(folder)
+    done = 0
     if settings.checkpoint_path.is_file():
         checkpoint = load_checkpoint(settings.checkpoint_path, settings.history_path, spec.kind)
         if checkpoint.server_round >= settings.rounds:
             return checkpoint.state
-    return pretrain(spec, folder, progress=progress)
+        done = checkpoint.server_round
+    return pretrain(spec, folder, progress=progress, done=done)
 
 
 def held_out_mse(spec: PretrainSpec, folder: Path) -> dict[int, float]:
