@@ -135,14 +135,18 @@ def tracking_metrics(log: EpisodeLog, scenario: Scenario) -> TrackingMetrics:
     return TrackingMetrics(
         prediction_error=float(errors.mean()) if errors.size else float("nan"),
         tracking_distance=float(np.concatenate(track_dist).mean()),
-        uncertainty=float(np.nanmean(log.trace)),
+        uncertainty=_nanmean(log.trace),
         speed_change=float(speed_change.mean()),
         total_cost=float(log.cost.mean()),
         prediction_coverage=float(np.concatenate(coverage).mean()),
-        tracking_error=float(
-            np.nanmean(((log.track_position - log.target_position) ** 2).sum(axis=-1))
-        ),
+        tracking_error=_nanmean(((log.track_position - log.target_position) ** 2).sum(axis=-1)),
     )
+
+
+def _nanmean(values: np.ndarray) -> float:
+    """``np.nanmean(values)``, but NaN without numpy's empty-slice warning when every entry is
+    NaN (e.g. an episode too short for the fusion to hold a track)."""
+    return float("nan") if np.isnan(values).all() else float(np.nanmean(values))
 
 
 @dataclass(frozen=True)
