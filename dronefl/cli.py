@@ -373,7 +373,8 @@ def fl_compare(
 #: Units of Table I's columns, for ``table1-compare``.
 TABLE1_UNITS = {
     "prediction_error": "m²", "tracking_distance": "m²", "uncertainty": "m²",
-    "speed_change": "m/s", "total_cost": "J", "tracking_error": "m²", "ospa": "m", "gospa": "m",
+    "speed_change": "m/s", "total_cost": "J", "sent_prediction_error": "m²",
+    "tracking_error": "m²", "ospa": "m", "gospa": "m",
 }  # fmt: skip
 
 

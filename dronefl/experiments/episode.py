@@ -9,6 +9,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -104,7 +105,11 @@ class TrackingMetrics:
     * ``speed_change`` (m/s): mean ``||v_k - v_{k-1}||`` over drones and steps;
     * ``total_cost``: mean planner cost ``J`` per step;
     * ``prediction_coverage``: fraction of (step, drone, assigned target) with a prediction;
-    * ``tracking_error`` (m^2): mean squared error of the fused tracks.
+    * ``tracking_error`` (m^2): mean squared error of the fused tracks;
+    * ``sent_prediction_error`` (m^2): ``prediction_error`` over the predictions the drones
+      sent to the cloud, the only ones the fusion sees (every prediction made, unless
+      ``--detected-only`` withholds those of targets out of view); NaN in results written
+      before it was measured (2026-12-06).
     """
 
     prediction_error: float
@@ -114,23 +119,26 @@ class TrackingMetrics:
     total_cost: float
     prediction_coverage: float
     tracking_error: float
+    sent_prediction_error: float = math.nan
 
 
 def tracking_metrics(log: EpisodeLog, scenario: Scenario) -> TrackingMetrics:
     """Table I's metrics of ``log`` (see :class:`TrackingMetrics`)."""
     column = {t: j for j, t in enumerate(scenario.target_ids)}
-    pred_err, track_dist, coverage = [], [], []
+    pred_err, sent_err, track_dist, coverage = [], [], [], []
     for i, drone in enumerate(scenario.drones):
         for target_id in drone.targets:
             j = column[target_id]
             predicted = log.prediction[:, i, j]  # (K, 2)
             truth_next = log.target_position[1:, j]  # (K, 2)
             ok = np.isfinite(predicted).all(axis=1)
-            pred_err.append(((predicted[ok] - truth_next[ok]) ** 2).sum(axis=1))
+            squared = ((predicted - truth_next) ** 2).sum(axis=1)
+            pred_err.append(squared[ok])
+            sent_err.append(squared[ok & log.sent[:, i, j]])
             coverage.append(ok)
             gap = log.drone_position[:-1, i] - log.target_position[:-1, j]
             track_dist.append((gap**2).sum(axis=1))
-    errors = np.concatenate(pred_err)
+    errors, sent = np.concatenate(pred_err), np.concatenate(sent_err)
     speed_change = np.linalg.norm(np.diff(log.drone_velocity[:-1], axis=0), axis=-1)
     return TrackingMetrics(
         prediction_error=float(errors.mean()) if errors.size else float("nan"),
@@ -140,6 +148,7 @@ def tracking_metrics(log: EpisodeLog, scenario: Scenario) -> TrackingMetrics:
         total_cost=float(log.cost.mean()),
         prediction_coverage=float(np.concatenate(coverage).mean()),
         tracking_error=_nanmean(((log.track_position - log.target_position) ** 2).sum(axis=-1)),
+        sent_prediction_error=float(sent.mean()) if sent.size else float("nan"),
     )
 
 

@@ -28,8 +28,9 @@ from dronefl.results import ResultError
 METRICS: tuple[str, ...] = (
     "prediction_error", "tracking_distance", "uncertainty", "speed_change", "total_cost",
 )  # fmt: skip
-#: The fused tracks' own error beside them: ``tracking_error``, their MSE against the truth (m^2).
-FUSION_METRICS: tuple[str, ...] = ("tracking_error",)
+#: Beside them, what the fusion gets and makes (m^2): ``sent_prediction_error``, the prediction
+#: error of the predictions sent to the cloud, and ``tracking_error``, the fused tracks' MSE.
+FUSION_METRICS: tuple[str, ...] = ("sent_prediction_error", "tracking_error")
 #: Multi-target set distances of the fused tracks (m), beside the paper's columns.
 SET_METRICS: tuple[str, ...] = ("ospa", "gospa")
 #: Every column a :class:`Table1Row` holds.

@@ -109,11 +109,23 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     table = (out / "table1.md").read_text()
     for method, episode in zip(TRACK_METHODS, episodes, strict=True):
         (line,) = [row for row in table.splitlines() if f"| farm_5x8 | {method} (n=1) |" in row]
-        distances, fused = episode.set_distances, episode.tracking.tracking_error
+        distances, tracking = episode.set_distances, episode.tracking
+        sent, fused = tracking.sent_prediction_error, tracking.tracking_error
         ospa, gospa = distances.ospa, distances.gospa
-        assert f"| {fused:.3f} ± 0.000 | {ospa:.2f} ± 0.00 | {gospa:.2f} ± 0.00 |" in line
+        assert (
+            f"| {sent:.3f} ± 0.000 | {fused:.3f} ± 0.000 | {ospa:.2f} ± 0.00 | {gospa:.2f} ± 0.00 |"
+            in line
+        )
+    assert "farm_5x8: DroneFL vs fixed distributed: prediction error" in table
+    assert "on the predictions sent), tracking distance" in table
     header, *lines = (out / "table1.csv").read_text().splitlines()
-    assert header.split(",")[3:-1] == [*METRICS, "tracking_error", "ospa", "gospa"]
+    assert header.split(",")[3:-1] == [
+        *METRICS,
+        "sent_prediction_error",
+        "tracking_error",
+        "ospa",
+        "gospa",
+    ]
     assert [float(v) for v in lines[0].split(",")[-3:-1]] == [
         episodes[0].set_distances.ospa,
         episodes[0].set_distances.gospa,

@@ -50,6 +50,24 @@ def test_episode_metrics_by_hand():
     # |v1 - v0| per drone over steps 0 -> 1: drone 1 moved 0 -> 1 m/s, drone 2 stayed.
     assert metrics.speed_change == pytest.approx(0.5)
     assert metrics.total_cost == pytest.approx(15.0)
+    assert np.isnan(metrics.tracking_error)  # no fused track yet
+    assert np.isnan(metrics.sent_prediction_error)  # none was marked sent
+    log.sent[0, 0, 0] = log.sent[1, 1, 1] = log.sent[1, 0, 1] = True
+    assert tracking_metrics(log, scenario).sent_prediction_error == pytest.approx(5.0)
+    log.sent[0, 0, 0] = False  # withheld (--detected-only): still made, not sent
+    withheld = tracking_metrics(log, scenario)
+    assert withheld.prediction_error == pytest.approx(5.0)
+    assert withheld.sent_prediction_error == pytest.approx(9.0)
+
+
+def test_metrics_written_before_the_sent_predictions_error_load_it_as_unknown():
+    from dronefl.experiments.episode import TrackingMetrics
+    from dronefl.results import from_json
+
+    old = {"prediction_error": 1.0, "tracking_distance": 2.0, "uncertainty": 0.1,
+           "speed_change": 0.2, "total_cost": 3.0, "prediction_coverage": 0.9,
+           "tracking_error": 0.5}  # fmt: skip
+    assert np.isnan(from_json(TrackingMetrics, old).sent_prediction_error)
 
 
 def test_a_log_says_which_predictions_were_sent_also_one_pickled_before():
