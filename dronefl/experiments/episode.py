@@ -10,6 +10,7 @@
 from __future__ import annotations
 
 import math
+import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -92,6 +93,23 @@ class EpisodeLog:
         """Write the log as ``.npz`` (atomically)."""
         arrays = {k: v for k, v in asdict(self).items() if isinstance(v, np.ndarray)}
         return atomic_savez(path, fl_steps=np.array(self.fl_steps, dtype=np.int64), **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> EpisodeLog:
+        """Read a :meth:`save` file (one written before ``sent`` existed too); ``OSError`` for
+        a missing file, ``ValueError`` naming it for a corrupt or foreign one."""
+        try:
+            with np.load(path) as data:
+                arrays = {k: data[k] for k in data.files}
+        except FileNotFoundError:
+            raise
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"{path}: not a readable episode log ({exc})") from None
+        try:
+            steps = [int(k) for k in arrays.pop("fl_steps")]
+            return cls(**arrays, fl_steps=steps)
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"{path}: not an episode log ({exc})") from None
 
 
 @dataclass(frozen=True)

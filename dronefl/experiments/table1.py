@@ -13,13 +13,14 @@ markdown, CSV and a plot.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from dronefl.config import Scenario
-from dronefl.experiments.episode import EpisodeMetrics
+from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
 from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
 from dronefl.io import atomic_write_text
 from dronefl.results import ResultError
@@ -136,7 +137,8 @@ def summarize(episodes: list[EpisodeMetrics]) -> list[Table1Row]:
 
 def _finished(config: TrackConfig) -> EpisodeMetrics | None:
     """The finished episode of exactly ``config`` (scenario content and every setting), or
-    None (missing, corrupt or stale)."""
+    None (missing, corrupt or stale). One finished before ``sent_prediction_error`` was
+    measured gets it from its ``episode.npz`` (the file is left as it is)."""
     path = Path(config.out) / "metrics.json"
     if not path.is_file():
         return None
@@ -146,4 +148,15 @@ def _finished(config: TrackConfig) -> EpisodeMetrics | None:
         return None
     ran = {k: v for k, v in metrics.config.items() if k not in NOT_SETTINGS}
     same = metrics.scenario_hash == config.scenario.content_hash and ran == config.settings()
-    return metrics if same else None
+    if not same:
+        return None
+    if math.isnan(metrics.tracking.sent_prediction_error):
+        try:
+            log = EpisodeLog.load(path.parent / "episode.npz")
+        except (OSError, ValueError):
+            return metrics
+        sent = tracking_metrics(log, config.scenario).sent_prediction_error
+        metrics = dataclasses.replace(
+            metrics, tracking=dataclasses.replace(metrics.tracking, sent_prediction_error=sent)
+        )
+    return metrics

@@ -4,6 +4,7 @@ an empty cache, flown by all three methods and tabulated; Table I reuses finishe
 offline FL trains every drone of it."""
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.fl_offline import OfflineResults
-from dronefl.experiments.table1 import METRICS, TABLE1_METHODS, run_table1
+from dronefl.experiments.table1 import METRICS, TABLE1_METHODS, _finished, run_table1
 from dronefl.experiments.track import TrackConfig, setting_fields
 
 #: Table I's methods with the projection detector (the image baseline flies on frames only).
@@ -131,3 +132,29 @@ def test_table1_reuses_the_finished_episodes(table_dir):
         episodes[0].set_distances.gospa,
     ]
     assert (out / "table1.png").stat().st_size > 10_000
+
+
+def test_an_episode_finished_before_the_sent_error_existed_gets_it_from_its_log(
+    table_dir, tmp_path
+):
+    flown = table_dir / "table" / "farm_5x8" / "dronefl" / "seed0"
+    old = tmp_path / "seed0"
+    shutil.copytree(flown, old)
+    data = json.loads((old / "metrics.json").read_text())
+    del data["tracking"]["sent_prediction_error"]
+    (old / "metrics.json").write_text(json.dumps(data))
+    written = (old / "metrics.json").read_bytes()
+    config = TrackConfig(
+        scenario=load_scenario(SCENARIO), out=old, method="dronefl", seed=0, duration=18.0,
+        fl_period=8.0, pretrained=table_dir / "pretrained", pretrain_rounds=1,
+        pretrain_seconds=20.0, **setting_fields("recommended", epochs=1),
+    )  # fmt: skip
+
+    reused = _finished(config)
+
+    expected = EpisodeMetrics.load(flown / "metrics.json").tracking.sent_prediction_error
+    assert reused is not None and np.isfinite(expected)
+    assert reused.tracking.sent_prediction_error == expected
+    assert (old / "metrics.json").read_bytes() == written  # the old result is left as it was
+    (old / "episode.npz").write_bytes(b"not an npz")
+    assert np.isnan(_finished(config).tracking.sent_prediction_error)
