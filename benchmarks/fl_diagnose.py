@@ -21,7 +21,9 @@ weighting, FedProx's mu on any model (``--proximal-mu``), SCAFFOLD's drift corre
 (``--scaffold exact|path``, the library's :func:`~dronefl.models.train.drift_correction`),
 AdaIN slopes kept at their start (``--freeze-style-slope``), a server optimiser (``--server-opt
 adam|yogi --server-lr``: Flower's FedAdam / FedYogi update, checked against Flower in
-``tests/fl/test_fl_diagnose.py``), rounds and the hold-out:
+``tests/fl/test_fl_diagnose.py``), a server learning rate on the averaged update
+(``--server-step``: FedAvgM's ``server_learning_rate``, from round ``--server-step-from``),
+rounds and the hold-out:
 ``--validation`` trains on the first 80 % of each drone's training part and evaluates on the
 rest (never the test windows). Numbers claimed in the README are confirmed with
 ``dronefl fl-offline`` (the real Flower path).
@@ -195,6 +197,16 @@ def main() -> None:
     )
     p.add_argument("--server-lr", type=float, default=1e-2, help="FedAdam / FedYogi's eta")
     p.add_argument(
+        "--server-step",
+        type=float,
+        default=1.0,
+        help="FedAvg(M)'s server learning rate eta_g (Flower's server_learning_rate): "
+        "w_g <- w_g - eta_g (w_g - average), with --server-momentum on the velocity",
+    )
+    p.add_argument(
+        "--server-step-from", type=int, default=1, help="first round of --server-step (1 before)"
+    )
+    p.add_argument(
         "--proximal-mu", type=float, default=0.0, help="FedProx's mu on every drone (0: none)"
     )
     p.add_argument(
@@ -255,7 +267,7 @@ def main() -> None:
         f"E={args.epochs} {args.optimizer} lr={args.lr} "
         f"decay={args.lr_decay} step {args.lr_step_factor} after round {args.lr_step_round} "
         f"batch={args.batch} weighting={args.weighting} "
-        f"server momentum {args.server_momentum} mu {args.proximal_mu} "
+        f"server momentum {args.server_momentum} step {args.server_step} mu {args.proximal_mu} "
         f"frozen slopes {args.freeze_style_slope} windows per drone (train/eval): "
         + ", ".join(f"{d}: {len(tr)}/{len(te)}" for d, (tr, te) in splits.items())
     )
@@ -339,7 +351,8 @@ def main() -> None:
         else:
             velocity = pseudo
         if args.server_opt == "none":
-            global_state = {k: global_state[k] - velocity[k] for k in global_state}
+            step = args.server_step if r >= args.server_step_from else 1.0
+            global_state = {k: global_state[k] - step * velocity[k] for k in global_state}
         else:
             global_state = server_step(args, r, global_state, average, moments)
         if r % args.every == 0 or r == args.rounds or r == 1:
