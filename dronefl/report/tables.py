@@ -122,7 +122,10 @@ def table1_markdown(rows: list[Table1Row]) -> str:
         ours, fixed = by_key.get((scenario, "dronefl")), by_key.get((scenario, "fixed"))
         if ours is None or fixed is None:
             continue
-        change = {m: 100 * (ours.mean[m] / fixed.mean[m] - 1) for m in COLUMNS}
+        change = {
+            m: 100 * (ours.mean[m] / fixed.mean[m] - 1) if fixed.mean[m] else math.nan
+            for m in ("prediction_error", "sent_prediction_error", "tracking_distance")
+        }
         sent = change["sent_prediction_error"]
         lines.append(
             f"{scenario}: DroneFL vs fixed distributed: prediction error "
