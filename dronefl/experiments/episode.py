@@ -97,13 +97,11 @@ class EpisodeLog:
     @classmethod
     def load(cls, path: Path) -> EpisodeLog:
         """Read a :meth:`save` file (one written before ``sent`` existed too); ``OSError`` for
-        a missing file, ``ValueError`` naming it for a corrupt or foreign one."""
+        a missing or unreadable file, ``ValueError`` naming it for a corrupt or foreign one."""
         try:
             with np.load(path) as data:
                 arrays = {k: data[k] for k in data.files}
-        except FileNotFoundError:
-            raise
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        except (ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a readable episode log ({exc})") from None
         try:
             steps = [int(k) for k in arrays.pop("fl_steps")]
