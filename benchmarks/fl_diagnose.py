@@ -10,8 +10,12 @@ round:
 
 * the mean over drones of the global model's test MSE (m^2) and per drone;
 * the drift ``||w_i - w_g|| / ||w_g||`` of each drone's weights after local training;
+* the round's move ``||w_g' - w_g|| / ||w_g||`` of the global weights, and the coherence of
+  the drones' moves ``||sum_i p_i (w_i - w_g)|| / sum_i p_i ||w_i - w_g||`` (1 when every drone
+  moved the same way, p_i the aggregation weights); ``--pooled`` prints its own move per round,
+  so a federated round's progress can be set beside a pooled round's;
 * with ``--verbose``, each drone's loss on its own training windows after local training and
-  the global model's MSE on each drone's training windows.
+  the global model's MSE on each drone's training windows (``--pooled``: the pooled model's).
 
 ``--pooled`` trains the same model on all drones' pooled training windows instead (the
 ``centralized-small`` bound), ``--local`` each drone alone. Options select the variant, E, the
@@ -283,14 +287,22 @@ def main() -> None:
                     lr=round_lr(args, r),
                     optimizer=args.optimizer,
                 )
+                before = flat(model.state_dict())
                 train_local(model, data, config)
-                if r % args.every == 0 or r == args.rounds:
+                move = float((flat(model.state_dict()) - before).norm() / before.norm())
+                if r % args.every == 0 or r == args.rounds or r == 1:
                     test = {d: evaluate(model, splits[d][1]) for d in members}
-                    print(
+                    line = (
                         f"{'pooled' if args.pooled else f'drone {g} alone'} round {r:3d} "
                         f"mean {np.mean(list(test.values())):8.3f}  "
                         + " ".join(f"{v:7.3f}" for v in test.values())
+                        + f"  move {move:.4f}"
                     )
+                    if args.verbose:
+                        line += "\n    model on each drone's train " + " ".join(
+                            f"{evaluate(model, splits[d][0]):7.3f}" for d in members
+                        )
+                    print(line, flush=True)
         print(f"wall {time.perf_counter() - started:.1f} s")
         return
     global_state = build(model_config, settings.seed, args.freeze_style_slope).state_dict()
@@ -355,6 +367,12 @@ def main() -> None:
             global_state = {k: global_state[k] - step * velocity[k] for k in global_state}
         else:
             global_state = server_step(args, r, global_state, average, moments)
+        moves = [flat(s) - g for s in states]
+        coherence = float(
+            sum(w * m for w, m in zip(weights, moves, strict=True)).norm()
+            / sum(w * m.norm() for w, m in zip(weights, moves, strict=True))
+        )
+        move = float((flat(global_state) - g).norm() / g.norm())
         if r % args.every == 0 or r == args.rounds or r == 1:
             model = build(model_config, settings.seed, args.freeze_style_slope)
             model.load_state_dict(global_state)
@@ -364,6 +382,7 @@ def main() -> None:
                 + " ".join(f"{v:7.3f}" for v in test.values())
                 + "  drift "
                 + " ".join(f"{v:.3f}" for v in drift.values())
+                + f"  move {move:.4f} coherence {coherence:.2f}"
             )
             if args.verbose:
                 on_train = {d: evaluate(model, splits[d][0]) for d in drones}

@@ -234,7 +234,8 @@ PresetOption = Annotated[
         help="Training setting: ours (the closed loop's) | paper (E=10, Adam 1e-3) | metric "
         "(ours + box sizes x altitude, batch 64) | metric-sgd (metric with SGD, lr 3e-4) | "
         "metric-scaffold (metric-sgd with SCAFFOLD's drift correction) | "
-        "metric-scaffold-step (metric-scaffold with lr x 0.1 in the last fifth of the rounds).",
+        "metric-scaffold-step (metric-scaffold with lr x 0.1 in the last fifth of the rounds) | "
+        "metric-scaffold-step-lr6e-4 (metric-scaffold-step with lr 6e-4).",
     ),
 ]
 

@@ -564,7 +564,8 @@ def _default(name: str) -> object:
 #: tuning recordings with seeds 10 and 11, validation windows only; README);
 #: ``metric-scaffold-step``: ``metric-scaffold`` with the lr x 0.1 in the last fifth of the
 #: rounds (chosen on the Case 3 tuning recordings with seeds 10-12, validation windows only;
-#: README).
+#: README); ``metric-scaffold-step-lr6e-4``: ``metric-scaffold-step`` with twice the lr, 6e-4
+#: (3e-4 x 3 diverges; chosen on the same recordings, validation windows only; README).
 PRESETS: dict[str, Preset] = {
     "ours": Preset("ours", *(_default(k) for k in _PRESET_FIELDS)),
     "paper": Preset("paper", 10, 1e-3, 128, "encoder", "identity", "image", "adam"),
@@ -576,6 +577,9 @@ PRESETS: dict[str, Preset] = {
 }
 PRESETS["metric-scaffold-step"] = replace(
     PRESETS["metric-scaffold"], name="metric-scaffold-step", lr_step_at=0.8
+)
+PRESETS["metric-scaffold-step-lr6e-4"] = replace(
+    PRESETS["metric-scaffold-step"], name="metric-scaffold-step-lr6e-4", lr=6e-4
 )
 
 

@@ -149,6 +149,10 @@ def test_the_stepped_lr_drops_tenfold_in_the_last_fifth_of_the_rounds():
     assert FlSettings.from_run_config(step.to_run_config()) == step
     with pytest.raises(SettingsError, match="lr-step-at: must be in"):
         FlSettings("r", "o", lr_step_at=0.0)
+    # Twice the lr, the same step: 6e-4 until round 40, 6e-5 after.
+    fast = PRESETS["metric-scaffold-step-lr6e-4"].apply(FlSettings("r", "o", rounds=50))
+    assert fast == replace(step, lr=6e-4)
+    assert [fast.lr_of(r) for r in (40, 41)] == pytest.approx([6e-4, 6e-5])
 
 
 def test_the_closed_loop_trains_every_online_round_at_one_lr():
