@@ -316,7 +316,7 @@ def main() -> None:
     counts = {d: len(splits[d][0]) if args.weighting == "samples" else 1.0 for d in drones}
     for r in range(1, args.rounds + 1):
         new_variates: dict[int, dict[str, torch.Tensor]] = {}
-        states, weights, losses, drift = [], [], {}, {}
+        states, moves, weights, losses, drift = [], [], [], {}, {}
         g = flat(global_state)
         if args.scaffold == "exact":
             model = build(model_config, settings.seed, args.freeze_style_slope)
@@ -348,7 +348,8 @@ def main() -> None:
             states.append(model.state_dict())
             weights.append(stats.num_examples if args.weighting == "samples" else 1.0)
             losses[d] = evaluate(model, splits[d][0])
-            drift[d] = float((flat(states[-1]) - g).norm() / g.norm())
+            moves.append(flat(states[-1]) - g)
+            drift[d] = float(moves[-1].norm() / g.norm())
         if args.scaffold == "path":
             variates = new_variates
         total = sum(weights)
@@ -367,7 +368,6 @@ def main() -> None:
             global_state = {k: global_state[k] - step * velocity[k] for k in global_state}
         else:
             global_state = server_step(args, r, global_state, average, moments)
-        moves = [flat(s) - g for s in states]
         coherence = float(
             sum(w * m for w, m in zip(weights, moves, strict=True)).norm()
             / sum(w * m.norm() for w, m in zip(weights, moves, strict=True))
