@@ -178,7 +178,7 @@ def demo(
     typer.echo(comparison(results))
     typer.echo(
         f"setting: recommended ({_as_flags(RECOMMENDED)}; chosen on tuning seeds 10-11; "
-        "README, Table I)"
+        "docs/closed_loop.md)"
     )
     typer.echo(
         f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"

@@ -557,15 +557,15 @@ def _default(name: str) -> object:
 #: seeds >= 10); ``paper``: the paper's setting (E = 10, Adam 1e-3, Eq. 6 AdaIN after every
 #: encoder layer, starting as plain normalisation), as first implemented here; ``metric``:
 #: ``ours`` with box sizes read in proportion to the ground size and batch 64 (chosen on the
-#: tuning recording with seed 10, validation windows only; README); ``metric-sgd``: ``metric``
+#: tuning recording with seed 10, validation windows only; docs/fl.md); ``metric-sgd``: ``metric``
 #: with SGD (momentum 0.9, lr 3e-4) instead of Adam on the drones and in the pooled baselines
-#: (chosen on the tuning recording with seed 12, validation windows only; README);
+#: (chosen on the tuning recording with seed 12, validation windows only; docs/fl.md);
 #: ``metric-scaffold``: ``metric-sgd`` with SCAFFOLD's drift correction (chosen on the Case 2
-#: tuning recordings with seeds 10 and 11, validation windows only; README);
+#: tuning recordings with seeds 10 and 11, validation windows only; docs/fl.md);
 #: ``metric-scaffold-step``: ``metric-scaffold`` with the lr x 0.1 in the last fifth of the
 #: rounds (chosen on the Case 3 tuning recordings with seeds 10-12, validation windows only;
-#: README); ``metric-scaffold-step-lr6e-4``: ``metric-scaffold-step`` with twice the lr, 6e-4
-#: (3e-4 x 3 diverges; chosen on the same recordings, validation windows only; README).
+#: docs/fl.md); ``metric-scaffold-step-lr6e-4``: ``metric-scaffold-step`` with twice the lr, 6e-4
+#: (3e-4 x 3 diverges; chosen on the same recordings, validation windows only; docs/fl.md).
 PRESETS: dict[str, Preset] = {
     "ours": Preset("ours", *(_default(k) for k in _PRESET_FIELDS)),
     "paper": Preset("paper", 10, 1e-3, 128, "encoder", "identity", "image", "adam"),

@@ -28,7 +28,7 @@ federated model ended 100x worse than the same model on pooled data). Two AdaIN 
   each encoder layer (``x <- x + AdaIN_h(x)``: normalising the residual stream itself would
   erase each window's mean, which says where the target is), starting as plain
   normalisation. It alone does not help (the paper preset keeps only it); with the head site
-  it does a little (README).
+  it does a little (docs/fl.md).
 
 Box sizes. A vehicle of ground size s m seen from altitude h fills ``s / footprint(h)`` of the
 image: box width and height scale as 1 / h, so the same vehicle is 3x smaller at 60 m than

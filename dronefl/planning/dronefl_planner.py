@@ -51,7 +51,7 @@ class PlannerConfig:
     out. Following a target at speed ``s`` puts ``r_i`` ``s^2 / (2 a_max)`` ahead of the drone
     (6 cm at the targets' 0.5 m/s). The rest point relative to each target (``v - \dot z_j``
     with the fused velocity) was tried and dropped: the velocity estimates' noise made the
-    drones of Case 3 chatter (README, "The planner's rest point").
+    drones of Case 3 chatter (docs/fusion.md, "The planner's rest point").
     """
 
     alpha: float = 50.0

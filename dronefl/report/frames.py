@@ -1,5 +1,5 @@
-"""README figures of the vision path: rendered camera frames with the YOLO detections drawn on
-them, and the detector's measured quality against altitude."""
+"""The vision path's figures (docs/vision.md): rendered camera frames with the YOLO
+detections drawn on them, and the detector's measured quality against altitude."""
 
 from __future__ import annotations
 

@@ -547,7 +547,7 @@ CONSTANT_SPEED_PSD = 0.1
 #: steps of ~3x: the largest q whose fused track is within 10 % of the best in both cases
 #: (Case 1 fails below 3e-4: 0.035 m² at 1e-4, 72 m² at 1e-5). A 0.5 m/s vehicle accelerates
 #: only in its headland U-turns (v²/r = 0.017 m/s² for Case 3's 15 m radius); in sharper
-#: turns this q lags by decimetres (README, "The fusion's process noise for constant-speed
+#: turns this q lags by decimetres (docs/fusion.md, "The fusion's process noise for constant-speed
 #: targets").
 TUNED_CONSTANT_SPEED_PSD = 0.001
 

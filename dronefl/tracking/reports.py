@@ -103,7 +103,7 @@ def detected_now(record: OnboardRecord) -> np.ndarray:
     ``(n_assigned,)`` bool in ``record.assigned`` order: with ``detected_only`` a drone sends
     only those targets' predictions. A prediction made while the target is not in the image
     (occluded, or at the edge of the view) comes from a window with gaps, and its error is
-    ~35x larger (Case 2, orchard, README "The drones send what they see")."""
+    ~35x larger (Case 2, orchard, docs/fusion.md, "The drones send what they see")."""
     return np.asarray(record.detected[record.steps - 1, record.assigned], dtype=bool)
 
 
