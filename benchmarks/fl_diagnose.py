@@ -189,7 +189,7 @@ def main() -> None:
     )
     p.add_argument("--lr-step-factor", type=float, default=0.1)
     p.add_argument("--batch", type=int, default=128)
-    p.add_argument("--stride", type=int, default=10)
+    p.add_argument("--stride", type=int, default=EVALUATION_STRIDE)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--weighting", choices=("samples", "uniform"), default="samples")
     p.add_argument(

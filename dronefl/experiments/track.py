@@ -93,32 +93,33 @@ from dronefl.wire import ControlMessage, NoiseReportMessage, PredictionMessage, 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
 #: :class:`TrackConfig` fields that do not change an episode's results.
 NOT_SETTINGS: tuple[str, ...] = ("out", "progress", "animate", "resume")
-#: The closed-loop setting ``dronefl demo`` flies: the ``metric-scaffold`` training preset (for the
-#: crop-field pretraining and every online update), labels only for drones that another drone saw
-#: with (``others``; ``lower`` until the bias correction) and one local epoch per round. Chosen on
-#: tuning seeds 10-11 of Cases 2-3: ``lower``, E = 1 had the smallest worst case against the fixed
-#: models among ``lower``/``all`` x E = 1/10 (with ``metric-sgd``), and ``metric-scaffold`` then the
-#: lowest DroneFL prediction error; evaluated on seeds 0-4 (docs/closed_loop.md, "Table I with the
-#: metric-sgd and metric-scaffold training"). Since 2026-12-05 the drones also report their own
-#: noise (``noise_split = "reported"``), chosen the same way: on tuning seeds 10-11 DroneFL's
-#: prediction error fell 14 % / 31 % in Cases 2 / 3, then evaluated on seeds 0-4
-#: (docs/closed_loop.md, "Table I with the drones' noise reports"). Since 2026-12-05 the drones also
-#: correct their predictions' bias by their own detections (``correct_bias``), chosen the same way:
-#: on tuning seeds 10-11 DroneFL's prediction error fell 9.5 % / 74 % in Cases 2 / 3, then evaluated
-#: on seeds 0-4 (docs/closed_loop.md, "Table I with the drones' bias correction"). With the
-#: corrected, far better labels, ``others`` (a drone learns a label its prediction went into only
-#: when another drone's did too) replaced ``lower``: on tuning seeds 10-11 DroneFL's error fell 11.9
-#: % / 8.2 % in Cases 2 / 3 against ``lower`` (``all`` alike in Cases 2-3, but 1.4 % worse than the
-#: fixed models in Case 1, where ``others`` and ``lower`` play no round). Since 2026-12-05
-#: (afternoon) the drones also send only the predictions of targets they detect at that step
-#: (``detected_only``), chosen the same way: on tuning seeds 10-11 DroneFL's prediction error fell
-#: 0.7 % / 1.3 % / 7.9 % in Cases 1 / 2 / 3, its tracking distance 0.5 % / 1.2 % / 0.3 % and its
-#: fused-track error 0.8 % / 47 % / 3.6 % (docs/fusion.md, "The drones send what they see"). Since
-#: 2026-12-05 (evening) the planner measures the distance at each drone's rest point under full
-#: braking (``planner_distance = "rest"``), chosen the same way: on tuning seeds 10-11 it ended Case
-#: 1's orbiting drone (tracking distance -90 %) and DroneFL's prediction error fell 75 % / 7 % / 34
-#: % in Cases 1 / 2 / 3, every seed (docs/fusion.md, "The planner's rest point"). Since 2026-12-05
-#: (late evening) the fusion tracks constant-speed targets with q =
+#: The closed-loop setting ``dronefl demo`` flies: the ``metric-scaffold`` training preset (for
+#: the crop-field pretraining and every online update), labels only for drones that another drone
+#: saw with (``others``; ``lower`` until the bias correction) and one local epoch per round.
+#: Chosen on tuning seeds 10-11 of Cases 2-3: ``lower``, E = 1 had the smallest worst case
+#: against the fixed models among ``lower``/``all`` x E = 1/10 (with ``metric-sgd``), and
+#: ``metric-scaffold`` then the lowest DroneFL prediction error; evaluated on seeds 0-4
+#: (docs/closed_loop.md, "Table I with the metric-sgd and metric-scaffold training"). Since
+#: 2026-12-05 the drones also report their own noise (``noise_split = "reported"``), chosen the
+#: same way: on tuning seeds 10-11 DroneFL's prediction error fell 14 % / 31 % in Cases 2 / 3,
+#: then evaluated on seeds 0-4 (docs/closed_loop.md, "Table I with the drones' noise reports").
+#: Since 2026-12-05 the drones also correct their predictions' bias by their own detections
+#: (``correct_bias``), chosen the same way: on tuning seeds 10-11 DroneFL's prediction error fell
+#: 9.5 % / 74 % in Cases 2 / 3, then evaluated on seeds 0-4 (docs/closed_loop.md, "Table I with
+#: the drones' bias correction"). With the corrected, far better labels, ``others`` (a drone
+#: learns a label its prediction went into only when another drone's did too) replaced ``lower``:
+#: on tuning seeds 10-11 DroneFL's error fell 11.9 % / 8.2 % in Cases 2 / 3 against ``lower``
+#: (``all`` alike in Cases 2-3, but 1.4 % worse than the fixed models in Case 1, where ``others``
+#: and ``lower`` play no round). Since 2026-12-05 (afternoon) the drones also send only the
+#: predictions of targets they detect at that step (``detected_only``), chosen the same way: on
+#: tuning seeds 10-11 DroneFL's prediction error fell 0.7 % / 1.3 % / 7.9 % in Cases 1 / 2 / 3,
+#: its tracking distance 0.5 % / 1.2 % / 0.3 % and its fused-track error 0.8 % / 47 % / 3.6 %
+#: (docs/fusion.md, "The drones send what they see"). Since 2026-12-05 (evening) the planner
+#: measures the distance at each drone's rest point under full braking (``planner_distance =
+#: "rest"``), chosen the same way: on tuning seeds 10-11 it ended Case 1's orbiting drone
+#: (tracking distance -90 %) and DroneFL's prediction error fell 75 % / 7 % / 34 % in Cases
+#: 1 / 2 / 3, every seed (docs/fusion.md, "The planner's rest point"). Since 2026-12-05 (late
+#: evening) the fusion tracks constant-speed targets with q =
 #: :data:`~dronefl.tracking.fusion.TUNED_CONSTANT_SPEED_PSD` (``constant_speed_psd``), chosen by
 #: replay on the same tuning episodes (docs/fusion.md, "The fusion's process noise for
 #: constant-speed targets").
