@@ -154,7 +154,8 @@ def demo(
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones others --epochs 1
     --noise-split reported --correct-bias --detected-only --planner-distance rest
-    --constant-speed-psd 0.001; the last acts on Cases 1 and 3 only), for 600 s:
+    --constant-speed-psd 0.001 --random-walk-track-psd 10; the last two act on Cases 1 and 3
+    and on Case 2 only), for 600 s:
     seed 0 of the README's Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
@@ -177,7 +178,7 @@ def demo(
         results.append(run_episode(config))
     typer.echo(comparison(results))
     typer.echo(
-        f"setting: recommended ({_as_flags(RECOMMENDED)}; chosen on tuning seeds 10-11; "
+        f"setting: recommended ({_as_flags(RECOMMENDED)}; chosen on tuning seeds >= 10; "
         "docs/closed_loop.md)"
     )
     typer.echo(
@@ -709,6 +710,14 @@ ConstantSpeedPsdOption = Annotated[
         "by replay on tuning seeds).",
     ),
 ]
+RandomWalkTrackPsdOption = Annotated[
+    float | None,
+    typer.Option(
+        "--random-walk-track-psd",
+        help="As --track-psd, for a scenario with random-walk targets only (Case 2; Cases 1 "
+        "and 3 keep one filter): 10 (recommended, chosen on tuning seeds) | unset: one filter.",
+    ),
+]
 EpochsOption = Annotated[
     int | None,
     typer.Option(
@@ -797,6 +806,7 @@ def track(
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
     constant_speed_psd: ConstantSpeedPsdOption = None,
+    random_walk_track_psd: RandomWalkTrackPsdOption = None,
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
@@ -844,6 +854,7 @@ def track(
             detected_only=detected_only,
             planner_distance=planner_distance,
             constant_speed_psd=constant_speed_psd,
+            random_walk_track_psd=random_walk_track_psd,
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -918,6 +929,7 @@ def table1(
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
     constant_speed_psd: ConstantSpeedPsdOption = None,
+    random_walk_track_psd: RandomWalkTrackPsdOption = None,
     preset: PresetOption = None,
     epochs: EpochsOption = None,
     lr: LrOption = None,
@@ -948,7 +960,7 @@ def table1(
             setting, preset=preset, labels=labels, fusion=fusion, label_drones=label_drones,
             epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
             detected_only=detected_only, planner_distance=planner_distance,
-            constant_speed_psd=constant_speed_psd,
+            constant_speed_psd=constant_speed_psd, random_walk_track_psd=random_walk_track_psd,
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1085,6 +1097,13 @@ def replay(
             "noise, as `track --net-reports` sends them (implied for an episode flown so)."
         ),
     ] = False,
+    track_psd: Annotated[
+        float | None,
+        typer.Option(
+            help="Fuse the tracks with a second filter of this q (m^2/s^3), the labels with the "
+            "fusion's own, as `track --track-psd` (with --as-flown: the episode's)."
+        ),
+    ] = None,
     labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
     max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
@@ -1133,6 +1152,8 @@ def replay(
             config = flown_config(recorded, **given)
             if ctx.get_parameter_source("detected_only") is not ParameterSource.COMMANDLINE:
                 detected_only = recorded.detected_only
+            if ctx.get_parameter_source("track_psd") is not ParameterSource.COMMANDLINE:
+                track_psd = recorded.flown_track_psd
         else:
             config = replay_config(recorded.scenario, **fusion)
         result = run(
@@ -1143,6 +1164,7 @@ def replay(
             correct_bias=correct_bias,
             detected_only=detected_only,
             net_reports=net_reports,
+            track_psd=track_psd,
         )
     except (EpisodeError, ValueError) as exc:
         raise fail(str(exc)) from None
@@ -1310,6 +1332,7 @@ def cloud(
     ] = False,
     planner_distance: PlannerDistanceOption = "next",
     constant_speed_psd: ConstantSpeedPsdOption = None,
+    track_psd: TrackPsdOption = None,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1352,6 +1375,7 @@ def cloud(
             detected_only=detected_only,
             planner_distance=planner_distance,
             constant_speed_psd=constant_speed_q(constant_speed_psd),
+            track_psd=track_psd,
         )
         fl = closed_loop_settings(
             preset,
@@ -1404,6 +1428,7 @@ def deploy_up(
     net_reports: NetReportsOption = False,
     planner_distance: PlannerDistanceOption = None,
     constant_speed_psd: ConstantSpeedPsdOption = None,
+    random_walk_track_psd: RandomWalkTrackPsdOption = None,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
@@ -1421,6 +1446,7 @@ def deploy_up(
         setting, preset=preset, label_drones=label_drones, epochs=epochs,
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
         planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
+        random_walk_track_psd=random_walk_track_psd,
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

@@ -59,7 +59,13 @@ from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
 from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
-from dronefl.tracking.fusion import CONSTANT_SPEED_PSD, NOISE_SPLITS, constant_speed_q
+from dronefl.tracking.fusion import (
+    CONSTANT_SPEED_PSD,
+    NOISE_SPLITS,
+    check_track_psd,
+    constant_speed_q,
+    planner_forecast,
+)
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.validation import check_one_of
 from dronefl.wire import (
@@ -97,7 +103,10 @@ class CloudSettings:
     track --detected-only``); ``planner_distance`` where the planner measures a drone
     (:attr:`~dronefl.planning.PlannerConfig.distance_at`, as ``dronefl track
     --planner-distance``); ``constant_speed_psd`` the fusion's process noise q for
-    constant-speed targets, m^2/s^3 (as ``dronefl track --constant-speed-psd``).
+    constant-speed targets, m^2/s^3 (as ``dronefl track --constant-speed-psd``); ``track_psd``
+    the q of a second filter whose tracks the planner flies on, the labels smoothed from the
+    fusion's own (as ``dronefl track --track-psd``; ``None``: one filter; ``deploy up`` passes
+    the q its setting resolves to for the scenario).
     """
 
     scenario: str
@@ -119,9 +128,11 @@ class CloudSettings:
     detected_only: bool = False
     planner_distance: str = "next"
     constant_speed_psd: float = CONSTANT_SPEED_PSD
+    track_psd: float | None = None
 
     def __post_init__(self) -> None:
         constant_speed_q(self.constant_speed_psd)
+        check_track_psd("--track-psd", self.track_psd)
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         check_one_of(self.preset, PRESETS, "--config")
         check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
@@ -137,7 +148,12 @@ class CloudSettings:
         return LinkConfig((self.listen,), (self.connect,), tls)
 
     def to_run_config(self) -> dict[str, str | float | bool]:
-        return {_PREFIX + k.replace("_", "-"): v for k, v in asdict(self).items()}
+        """The settings as the ServerApp's run config. TOML has no null and Flower takes only
+        the keys the app declares (``pyproject.toml``), so an optional number that is
+        ``None`` travels as 0 (never a valid value of one: each must be positive)."""
+        return {
+            _PREFIX + k.replace("_", "-"): 0.0 if v is None else v for k, v in asdict(self).items()
+        }
 
     @classmethod
     def from_run_config(cls, config: dict) -> CloudSettings:
@@ -153,7 +169,10 @@ class CloudSettings:
             if kind == "bool" and not isinstance(value, bool):
                 raise CloudError(f"run config: {key!r} must be a bool, got {value!r}")
             if kind != "bool":
-                value = float(value) if kind == "float" else str(value)
+                if kind == "float | None":
+                    value = float(value) or None  # 0 stands for None (to_run_config)
+                else:
+                    value = float(value) if kind == "float" else str(value)
             values[name] = value
         return cls(**values)
 
@@ -196,6 +215,11 @@ class CloudEpisode:
             fusion_config(s, constant_speed_psd=settings.constant_speed_psd),
             noise_split=settings.noise_split,
         )
+        # The planner's tracks; with a q of their own the labels have a filter of their own.
+        self.label_fuser: Fuser | None = None
+        if settings.track_psd is not None:
+            self.label_fuser = Fuser(s.target_ids, s.drone_ids, fusion)
+            fusion = replace(fusion, acceleration_psd=settings.track_psd)
         self.fuser = Fuser(s.target_ids, s.drone_ids, fusion)
         self.planner = DroneFLPlanner.from_scenario(
             s, PlannerConfig(distance_at=settings.planner_distance)
@@ -367,12 +391,16 @@ class CloudEpisode:
                     PositionMeasurement(drone_id, target_id, position, noise.get(target_id))
                 )
         dt = self.scenario.dt
-        tracks = self.fuser.update(telemetry.t + dt, measurements)
+        tracks = fused = self.fuser.update(telemetry.t + dt, measurements)
+        if self.label_fuser is not None:
+            fused = self.label_fuser.update(telemetry.t + dt, measurements)
         for target_id, track in tracks.items():
             self.track_position[k + 1, self.column[target_id]] = track.position
+        for target_id, track in fused.items():  # the uncertainty the planner trades
             self.trace[k, self.column[target_id]] = np.trace(track.covariance)
         t0 = time.perf_counter()
-        plan = self.planner.plan(telemetry.drones, self.fuser.forecast(dt))
+        forecast = planner_forecast(self.fuser, self.label_fuser, tracks, dt)
+        plan = self.planner.plan(telemetry.drones, forecast)
         self.planner_seconds += time.perf_counter() - t0
         self.cost[k] = plan.cost.total
         for drone_id in self.scenario.drone_ids:
@@ -401,7 +429,8 @@ class CloudEpisode:
         # The same labels as `dronefl track`'s default: the fused tracks, RTS-smoothed, each
         # drone's kept by the --label-drones rule and de-shrunk with --deshrink-labels.
         t = np.arange(steps) * self.scenario.dt
-        smoothed = make_labels("smoothed", self.fuser, t).position
+        labelled = self.fuser if self.label_fuser is None else self.label_fuser
+        smoothed = make_labels("smoothed", labelled, t).position
         altitudes = [d.altitude for d in self.scenario.drones]
         own, pull = training_labels(
             smoothed, self.prediction, self.drone_position[:steps], altitudes,

@@ -31,7 +31,12 @@ from dronefl.deploy.processes import Child, Children, DeployError, marked, port_
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
 from dronefl.fl.records import PRESETS
 from dronefl.planning import DISTANCE_POINTS
-from dronefl.tracking.fusion import NOISE_SPLITS, constant_speed_q
+from dronefl.tracking.fusion import (
+    NOISE_SPLITS,
+    check_track_psd,
+    constant_speed_q,
+    planner_track_psd,
+)
 from dronefl.tracking.labels import LABEL_DRONES
 from dronefl.validation import check_one_of
 
@@ -68,6 +73,7 @@ class DeployConfig:
     net_reports: bool = False
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
+    random_walk_track_psd: float | None = None
 
     def __post_init__(self) -> None:
         check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
@@ -88,6 +94,7 @@ class DeployConfig:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
+        check_track_psd("--random-walk-track-psd", self.random_walk_track_psd)
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -217,6 +224,12 @@ def _commands(
             *(
                 ["--constant-speed-psd", repr(config.constant_speed_psd)]
                 if config.constant_speed_psd is not None
+                else []
+            ),
+            *(
+                ["--track-psd", repr(track_psd)]
+                if (track_psd := planner_track_psd(scenario, None, config.random_walk_track_psd))
+                is not None
                 else []
             ),
             "--deadline-ms", str(config.deadline_ms),

@@ -28,6 +28,7 @@ from dronefl.config import Scenario, load_scenario
 from dronefl.experiments.episode import all_sent, received_predictions
 from dronefl.io import atomic_write_json, atomic_write_text
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
+from dronefl.tracking.fusion import check_track_psd
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
 from dronefl.tracking.reports import (
     forecast_residual_reports,
@@ -52,7 +53,9 @@ class Episode:
     the cloud (all but those withheld by ``track --detected-only``; every finite one for an
     episode recorded before it existed); ``flown_fusion`` the fusion settings it was flown
     with (``metrics.json``'s ``fusion_config``; ``None`` for an episode that does not record
-    them) and ``detected_only`` whether it was flown with ``track --detected-only``.
+    them) and ``detected_only`` whether it was flown with ``track --detected-only``;
+    ``flown_track_psd`` the q of the second filter the planner flew on (``metrics.json``'s
+    ``track_psd``; ``None``: one filter).
     """
 
     path: Path
@@ -66,6 +69,7 @@ class Episode:
     net_reports: bool = False
     flown_fusion: FusionConfig | None = None
     detected_only: bool = False
+    flown_track_psd: float | None = None
 
     def __post_init__(self) -> None:
         if self.sent is None:
@@ -108,6 +112,7 @@ def load_episode(folder: str | Path) -> Episode:
     return Episode(
         folder, scenario, **arrays, bias_corrected=corrected, sent=sent, net_reports=net,
         flown_fusion=_flown_fusion(config), detected_only=bool(config.get("detected_only")),
+        flown_track_psd=config.get("track_psd"),
     )  # fmt: skip
 
 
@@ -142,7 +147,10 @@ class TargetReplay:
     re-fused filtered track over every step it existed; ``fused_mse_paired``: the same over the
     steps the best drone predicted (the two MSEs of :attr:`fused_over_best` then cover the same
     steps); ``label_mse`` over the ``label_kept``
-    fraction of steps that got a label; ``recorded_mse``: the track as flown.
+    fraction of steps that got a label; ``recorded_mse``: the track as flown;
+    ``oracle_mse_paired``: the best fixed weighting of the drones' predictions, fitted to the
+    truth afterwards, over the best drone's steps (:func:`oracle_weighting_mse`; a reference
+    for what a fusion with fixed weights could reach, not an estimator).
     """
 
     target_id: int
@@ -152,6 +160,7 @@ class TargetReplay:
     label_mse: float
     label_kept: float
     recorded_mse: float
+    oracle_mse_paired: float = float("nan")
 
     @property
     def best_drone_mse(self) -> float:
@@ -163,6 +172,40 @@ class TargetReplay:
         """``fused_mse_paired / best_drone_mse``: the fused track against its best input on the
         steps that input exists (the acceptance asks <= 0.9 with >= 2 drones)."""
         return self.fused_mse_paired / self.best_drone_mse
+
+    @property
+    def oracle_over_best(self) -> float:
+        """``oracle_mse_paired / best_drone_mse``: the fixed-weights oracle against the best
+        drone on the same steps (<= 1; 1 when only the best drone predicted the target)."""
+        return self.oracle_mse_paired / self.best_drone_mse
+
+
+def oracle_weighting_mse(errors: np.ndarray, seen: np.ndarray, best: int) -> float:
+    """MSE (m^2) of the best fixed weighting of the drones' predictions of one target, over
+    the steps drone ``best`` predicted it.
+
+    ``errors`` ``(K, M, 2)`` m: each drone's prediction minus the truth (anything where
+    ``seen`` ``(K, M)`` is False). The steps are grouped by which drones predicted the target;
+    in a group of drones ``D`` with error Gram matrix ``G_ab = sum_k e_a(k) . e_b(k)`` the
+    weights ``w`` (``sum w = 1``, so an unbiased combination stays unbiased) that minimise the
+    summed squared error ``w^T G w`` are ``G^-1 1 / (1^T G^-1 1)``, and the minimum is
+    ``1 / (1^T G^-1 1)``. Fitted to the truth on the same steps it is scored on, it is an
+    optimistic reference: no fusion that weights the same predictions by fixed weights per
+    group does better. It is at most the best drone's own MSE, whose weights ``e_best`` are
+    one of the candidates, and lower the less the drones' errors are correlated.
+    """
+    steps = seen[:, best]
+    if not steps.any():
+        return float("nan")
+    groups = seen[steps]  # (S, M): which drones predicted at each of the best drone's steps
+    total = 0.0
+    for pattern in np.unique(groups, axis=0):
+        rows = np.nonzero(steps)[0][(groups == pattern).all(axis=1)]
+        e = errors[rows][:, pattern]  # (S_g, D, 2)
+        gram = np.einsum("kax,kbx->ab", e, e)
+        ones = np.ones(len(gram))
+        total += 1.0 / float(ones @ np.linalg.pinv(gram) @ ones)
+    return total / int(steps.sum())
 
 
 #: How the fused-track cells are split by the number of drones that predicted the target at
@@ -210,7 +253,9 @@ class ReplayResult:
     predicted the target at the step before (:data:`VIEWS`; ``"0"`` is coasting on the motion
     model alone), each :class:`ViewsError`; ``correct_bias``: the drones' predictions were
     bias-corrected before the fusion; ``detected_only``: only the predictions made while the
-    drone detected the target were fused."""
+    drone detected the target were fused; ``track_psd``: the fused tracks (and the gating
+    counts) are those of a second filter with this q, the planner's, the labels the
+    ``fusion`` filter's (``None``: one filter)."""
 
     episode: str
     scenario: str
@@ -227,6 +272,7 @@ class ReplayResult:
     by_views: dict[str, ViewsError]
     correct_bias: bool = False
     detected_only: bool = False
+    track_psd: float | None = None
 
     @property
     def gated_fraction(self) -> float:
@@ -328,14 +374,17 @@ def replay(
     correct_bias: bool = False,
     detected_only: bool = False,
     net_reports: bool = False,
+    track_psd: float | None = None,
 ) -> ReplayResult:
     """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``; with
     ``correct_bias`` the drones' predictions are first corrected as in flight
     (:meth:`~dronefl.tracking.reports.NoiseReporter.correct`); with ``detected_only`` only
     the predictions made while the drone detected the target are fused
     (:func:`withhold_undetected`); with ``net_reports`` the reports are rebuilt net of the
-    drones' projection noise (as for an episode flown with it). Each drone's MSE is that of
-    the predictions fused."""
+    drones' projection noise (as for an episode flown with it); with ``track_psd`` the fused
+    tracks are a second filter's with that q, the labels still ``config``'s filter's, as the
+    closed loop flies ``--track-psd`` (:func:`~dronefl.tracking.fusion.planner_forecast`).
+    Each drone's MSE is that of the predictions fused."""
     scenario = episode.scenario
     if correct_bias and episode.bias_corrected:
         raise EpisodeError(
@@ -354,7 +403,12 @@ def replay(
             reports = None
     else:
         episode = replace(episode, prediction=sent_predictions(episode))
-    fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
+    check_track_psd("--track-psd", track_psd)
+    label_fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
+    fuser = label_fuser
+    if track_psd is not None:
+        tracked = replace(config, acceleration_psd=track_psd)
+        fuser = Fuser(scenario.target_ids, scenario.drone_ids, tracked)
     n_steps = episode.prediction.shape[0]
     fused = np.full_like(episode.track_position, np.nan)
     seen = np.isfinite(episode.prediction).all(axis=-1)  # (K, M, N)
@@ -371,19 +425,22 @@ def replay(
         ]
         for target_id, track in fuser.update(float(episode.t[k + 1]), measurements).items():
             fused[k + 1, target_ids.index(target_id)] = track.position
-    made = make_labels(labels, fuser, episode.t, episode.target_position, max_std)
+        if label_fuser is not fuser:
+            label_fuser.update(float(episode.t[k + 1]), measurements)
+    made = make_labels(labels, label_fuser, episode.t, episode.target_position, max_std)
     truth = episode.target_position
     targets = []
     for j, target_id in enumerate(scenario.target_ids):
-        drones, best, paired = [], np.inf, float("nan")
+        drones, best, paired, oracle = [], np.inf, float("nan"), float("nan")
+        errors = episode.prediction[:, :, j] - truth[1:, None, j]  # (K, M, 2)
         for i, drone_id in enumerate(scenario.drone_ids):
             ok = seen[:, i, j]
             if ok.any():
-                err = episode.prediction[ok, i, j] - truth[1:][ok, j]
-                mse = float((err**2).sum(-1).mean())
+                mse = float((errors[ok, i] ** 2).sum(-1).mean())
                 drones.append(DroneError(drone_id, mse, int(ok.sum())))
                 if mse < best:  # the fused track at k + 1 on the steps k this drone predicted
                     best, paired = mse, _mse(fused[1:][ok, j], truth[1:][ok, j])
+                    oracle = oracle_weighting_mse(errors, seen[:, :, j], i)
         targets.append(
             TargetReplay(
                 target_id,
@@ -393,6 +450,7 @@ def replay(
                 _mse(made.position[:, j], truth[:, j]),
                 float(np.isfinite(made.position[:, j, 0]).mean()),
                 _mse(episode.track_position[:, j], truth[:, j]),
+                oracle,
             )
         )
     return ReplayResult(
@@ -411,6 +469,7 @@ def replay(
         views_errors(fused, truth, seen),
         correct_bias,
         detected_only,
+        track_psd,
     )
 
 
@@ -429,6 +488,7 @@ def result_dict(result: ReplayResult) -> dict:
     for entry, target in zip(out["targets"], result.targets, strict=True):
         entry["best_drone_mse"] = target.best_drone_mse
         entry["fused_over_best"] = target.fused_over_best
+        entry["oracle_over_best"] = target.oracle_over_best
     return out
 
 
@@ -436,11 +496,17 @@ def format_result(result: ReplayResult) -> str:
     """A markdown table: per target, each drone's prediction MSE beside the fused and label MSE."""
     drone_ids = sorted({d.drone_id for t in result.targets for d in t.drones})
     head = ["target", *(f"drone {i}" for i in drone_ids), "best drone", "fused (filtered)"]
-    head += ["fused, best's steps", "fused / best", f"{result.labels} label", "label kept"]
+    head += ["fused, best's steps", "fused / best", "oracle / best"]
+    head += [f"{result.labels} label", "label kept"]
     head += ["as flown"]
     lines = [
         f"Replay of {result.episode} ({result.scenario}), fusion method "
         f"{result.fusion.method!r}, q = {result.fusion.acceleration_psd} m²/s³"
+        + (
+            f" (the fused tracks: a second filter with q = {result.track_psd})"
+            if result.track_psd is not None
+            else ""
+        )
         + (", the drones' predictions bias-corrected" if result.correct_bias else "")
         + (", only those made while the drone detected the target" if result.detected_only else "")
         + "; MSE in m².",
@@ -452,7 +518,7 @@ def format_result(result: ReplayResult) -> str:
         by_drone = {d.drone_id: f"{d.mse:.2f} (n={d.n})" for d in t.drones}
         row = [str(t.target_id), *(by_drone.get(i, "—") for i in drone_ids)]
         row += [f"{t.best_drone_mse:.2f}", f"{t.fused_mse:.2f}", f"{t.fused_mse_paired:.2f}"]
-        row += [f"{t.fused_over_best:.2f}x"]
+        row += [f"{t.fused_over_best:.2f}x", f"{t.oracle_over_best:.2f}x"]
         row += [f"{t.label_mse:.2f}", f"{100 * t.label_kept:.0f} %", f"{t.recorded_mse:.2f}"]
         lines.append("| " + " | ".join(row) + " |")
     lines += [
@@ -467,6 +533,9 @@ def format_result(result: ReplayResult) -> str:
             for name, v in result.by_views.items()
         )
         + " (0: coasting).",
+        "oracle / best: the best fixed weights of the target's drones' predictions, fitted to "
+        "the truth afterwards, on the best drone's steps (no fixed-weight fusion of these "
+        "predictions does better).",
     ]
     return "\n".join(lines)
 

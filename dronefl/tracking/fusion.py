@@ -505,6 +505,23 @@ class Fuser:
         return TrackForecast(ids, self.drone_ids, positions, predicted, noise)
 
 
+def planner_forecast(
+    fuser: Fuser, label_fuser: Fuser | None, tracks: dict[int, Track], dt: float
+) -> TrackForecast:
+    """The planner's view of the targets ``dt`` s ahead: ``fuser``'s forecast; with a second
+    filter (``label_fuser``, the fusion's own, whose smoothed history gives the labels) the
+    positions of ``tracks`` (the step's update of the planner's ``fuser``) with the covariances
+    and noises of ``label_fuser``, so that the uncertainty the planner trades against distance
+    stays the fusion's."""
+    if label_fuser is None:
+        return fuser.forecast(dt)
+    view = label_fuser.forecast(dt)
+    for k, target in enumerate(view.target_ids):
+        if target in tracks:
+            view.positions[k] = tracks[target].position
+    return view
+
+
 def _positions(measurements: Sequence[PositionMeasurement]) -> np.ndarray:
     """The measurements' positions ``(K, 2)`` m; ``ValueError`` if one is not ``(2,)``."""
     if not measurements:
@@ -575,8 +592,7 @@ def fusion_config(
     instead of carrying the velocity it had at the edge of the view on. The ``paper`` fusion
     keeps the constant-velocity model."""
     q = constant_speed_q(constant_speed_psd)
-    random_walk = any(t.motion == "random_walk" for t in scenario.targets)
-    if not random_walk:
+    if not has_random_walk(scenario):
         return FusionConfig(method=method, acceleration_psd=q)
     if method != "robust":
         return FusionConfig(method=method, acceleration_psd=1.0)
@@ -586,3 +602,31 @@ def fusion_config(
         motion="mean_reverting",
         velocity_time_constant=RANDOM_WALK_VELOCITY_TIME_CONSTANT,
     )
+
+
+def has_random_walk(scenario: Scenario) -> bool:
+    """Whether any of ``scenario``'s targets moves as a random walk (they set the fusion's
+    motion model for the whole scenario, :func:`fusion_config`)."""
+    return any(t.motion == "random_walk" for t in scenario.targets)
+
+
+def check_track_psd(option: str, value: float | None) -> None:
+    """``ValueError`` naming ``option`` unless ``value`` is ``None`` or a positive number."""
+    if value is not None and not (0 < value < math.inf):
+        raise ValueError(f"{option}: must be a positive number of m^2/s^3, got {value}")
+
+
+def planner_track_psd(
+    scenario: Scenario, track_psd: float | None, random_walk_track_psd: float | None
+) -> float | None:
+    """The q (m^2/s^3) of the planner's own filter: ``track_psd`` if given, else
+    ``random_walk_track_psd`` for a scenario with random-walk targets, else ``None`` (the
+    planner flies on the fusion's filter); ``ValueError`` naming the option unless each given
+    value is a positive number."""
+    check_track_psd("--track-psd", track_psd)
+    check_track_psd("--random-walk-track-psd", random_walk_track_psd)
+    if track_psd is not None:
+        return float(track_psd)
+    if random_walk_track_psd is not None and has_random_walk(scenario):
+        return float(random_walk_track_psd)
+    return None

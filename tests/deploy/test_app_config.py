@@ -3,6 +3,7 @@ an unknown key with "Invalid run configuration"); the staged copy of the app tha
 builds its FAB from holds every file the app needs."""
 
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -47,6 +48,11 @@ def test_cloud_settings_survive_the_run_config():
         constant_speed_psd=1e-3,
     )  # fmt: skip
     assert CloudSettings.from_run_config(settings.to_run_config()) == settings
+    # A second filter's q travels as a float, its absence as 0 (TOML has no null).
+    for track_psd, sent in ((None, 0.0), (10.0, 10.0)):
+        second = replace(settings, track_psd=track_psd)
+        assert second.to_run_config()["deploy-track-psd"] == sent
+        assert CloudSettings.from_run_config(second.to_run_config()) == second
     # A flag given as text is refused by name ("false" would be true to bool()).
     as_text = {**settings.to_run_config(), "deploy-deshrink-labels": "false"}
     with pytest.raises(CloudError, match="'deploy-deshrink-labels' must be a bool"):

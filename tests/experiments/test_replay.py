@@ -19,6 +19,7 @@ from dronefl.experiments.replay import (
     flown_config,
     format_result,
     load_episode,
+    oracle_weighting_mse,
     replay,
     replay_config,
 )
@@ -81,7 +82,59 @@ def test_replay_reports_each_drone_beside_the_fused_track(tmp_path):
     assert result.measurements == 600 - 4  # step 0's 4 measurements start the 3 tracks
     # Fusion of a 0.2 m and a 0.5 m drone with a CV model beats the better drone.
     assert target2.fused_over_best < 0.9
+    # The fixed-weights oracle of two independent drones beats the better one, and no
+    # single-drone target gains from it.
+    assert target2.oracle_over_best < 0.9
+    assert result.targets[0].oracle_over_best == pytest.approx(1.0, rel=1e-9)
     assert result.label_mse < result.fused_mse  # smoothed labels beat the filtered track
+
+
+def test_oracle_weighting_by_hand():
+    # Two drones with independent errors of variance 1 and 4 (per axis): the inverse-variance
+    # weights (0.8, 0.2) reach 1 / (1 + 1/4) = 0.8 of the better drone's error.
+    rng = np.random.default_rng(3)
+    k = 20_000
+    errors = np.stack([rng.normal(0, 1, (k, 2)), rng.normal(0, 2, (k, 2))], axis=1)
+    seen = np.ones((k, 2), bool)
+    best_mse = (errors[:, 0] ** 2).sum(-1).mean()
+    assert oracle_weighting_mse(errors, seen, 0) / best_mse == pytest.approx(0.8, abs=0.01)
+    # Errors shared by both drones cannot be weighted away: the oracle is the better drone.
+    shared = np.repeat(errors[:, :1], 2, axis=1)
+    assert oracle_weighting_mse(shared, seen, 0) == pytest.approx(best_mse, rel=1e-9)
+    # Correlation 0.75 with variances 1 and 4: the better drone's std ratio 0.5 < 0.75, so the
+    # best weights put a negative weight on the worse drone; the minimum is
+    # s1² s2² (1 - rho²) / (s1² + s2² - 2 rho s1 s2) = 4 * 0.4375 / 2 = 0.875 of s1².
+    common = rng.normal(0, 1, (k, 2))
+    other = 2 * (0.75 * common + np.sqrt(1 - 0.75**2) * rng.normal(0, 1, (k, 2)))
+    correlated = np.stack([common, other], axis=1)
+    ratio = oracle_weighting_mse(correlated, seen, 0) / (common**2).sum(-1).mean()
+    assert ratio == pytest.approx(0.875, abs=0.01)
+    # Steps where only the best drone predicted count with its own error; other drones' steps
+    # and NaNs where a drone did not predict are ignored.
+    seen[: k // 2, 1] = False
+    errors[: k // 2, 1] = np.nan
+    half = (errors[: k // 2, 0] ** 2).sum(-1).sum()
+    expected = (half + 0.8 * (errors[k // 2 :, 0] ** 2).sum(-1).sum()) / k
+    assert oracle_weighting_mse(errors, seen, 0) == pytest.approx(expected, rel=0.02)
+    assert np.isnan(oracle_weighting_mse(errors, np.zeros((k, 2), bool), 0))
+
+
+def test_replay_with_a_second_filter_for_the_tracks(tmp_path):
+    # `track --track-psd 10`: the tracks are a q = 10 filter's, the labels the fusion's own.
+    _episode(tmp_path / "ep")
+    episode = load_episode(tmp_path / "ep")
+    config = replay_config(episode.scenario)
+    one = replay(episode, config)
+    two = replay(episode, config, track_psd=10.0)
+    fast = replay(episode, replace(config, acceleration_psd=10.0))
+
+    assert two.track_psd == 10.0 and one.track_psd is None
+    assert two.fused_mse == fast.fused_mse != one.fused_mse  # the planner's filter
+    assert two.rejections == fast.rejections
+    assert two.label_mse == one.label_mse != fast.label_mse  # the fusion's own filter
+    assert "a second filter with q = 10.0" in format_result(two)
+    with pytest.raises(ValueError, match="--track-psd"):
+        replay(episode, config, track_psd=-1.0)
 
 
 def test_replay_splits_the_fused_error_by_the_drones_that_saw_the_target(tmp_path):
@@ -121,6 +174,8 @@ def test_replay_command_writes_json_and_markdown(tmp_path):
     assert data["labels"] == "filtered"
     assert data["fusion"]["method"] == "robust"
     assert len(data["targets"]) == 3
+    assert data["targets"][1]["oracle_over_best"] < 1.0
+    assert "| oracle / best |" in result.output
     assert (out / "replay.md").read_text().startswith("Replay of")
 
 

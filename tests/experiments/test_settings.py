@@ -2,6 +2,7 @@
 and that ``track``, ``table1`` and ``deploy up`` fly the recommended setting by default."""
 
 import dataclasses
+from dataclasses import replace
 
 import pytest
 from typer.testing import CliRunner
@@ -25,7 +26,7 @@ def test_every_setting_names_every_field_and_ours_is_the_config_defaults():
     assert SETTINGS["paper"] == {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
-        "planner_distance": "next", "constant_speed_psd": None,
+        "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
     }  # fmt: skip
 
 
@@ -91,3 +92,42 @@ def test_deploy_up_turns_a_recommended_flag_off(captured, tmp_path):
 
     (config,) = captured
     assert config.detected_only is False and config.correct_bias is True
+
+
+def test_the_planners_own_filter_is_for_random_walk_targets_only(tmp_path):
+    from dronefl.config import load_scenario
+    from dronefl.deploy.launcher import DeployConfig, _commands
+
+    def config(case: str, **chosen: object) -> TrackConfig:
+        fields = setting_fields("recommended", **chosen)
+        return TrackConfig(scenario=load_scenario(case), out=tmp_path, **fields)
+
+    # Case 2 (random walk): the recommended setting flies the planner on a q = 10 filter,
+    # recorded as the episode's track_psd (the same as `--track-psd 10` beside one filter).
+    case2 = config("case2")
+    assert case2.planner_track_psd == 10.0
+    assert case2.track_fusion_config().acceleration_psd == 10.0
+    assert case2.fusion_config().acceleration_psd == 1.0  # the labels' filter
+    assert case2.describe()["track_psd"] == 10.0 and "random_walk_track_psd" not in (
+        case2.describe()
+    )
+    explicit = replace(case2, random_walk_track_psd=None, track_psd=10.0)
+    assert explicit.settings() == case2.settings()
+    # Cases 1 and 3 (constant speed) keep one filter: their episodes are those flown before.
+    case3 = config("case3")
+    assert case3.planner_track_psd is None
+    assert case3.track_fusion_config() == case3.fusion_config()
+    assert case3.settings() == replace(case3, random_walk_track_psd=None).settings()
+    # --track-psd wins everywhere; a bad value is named.
+    assert replace(case3, track_psd=3.0).planner_track_psd == 3.0
+    assert config("case2", random_walk_track_psd=3.0).planner_track_psd == 3.0
+    with pytest.raises(ValueError, match="--random-walk-track-psd"):
+        config("case3", random_walk_track_psd=-1.0)
+    # deploy up resolves it for the scenario and hands the cloud the q it flies.
+    for case, expected in (("case2", 10.0), ("case3", None)):
+        deploy = DeployConfig(scenario=case, out=tmp_path, random_walk_track_psd=10.0)
+        cloud = _commands(deploy, load_scenario(case), tmp_path / "m.npz", None, tmp_path)["cloud"]
+        given = float(cloud[cloud.index("--track-psd") + 1]) if "--track-psd" in cloud else None
+        assert given == expected, case
+    with pytest.raises(ValueError, match="--random-walk-track-psd"):
+        DeployConfig(scenario="case2", out=tmp_path, random_walk_track_psd=0.0)

@@ -234,8 +234,10 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
     assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
     assert _as_flags(RECOMMENDED) == (  # what `dronefl demo` prints under its table
         "--config metric-scaffold --label-drones others --epochs 1 --noise-split reported "
-        "--correct-bias --detected-only --planner-distance rest --constant-speed-psd 0.001"
+        "--correct-bias --detected-only --planner-distance rest --constant-speed-psd 0.001 "
+        "--random-walk-track-psd 10.0"
     )
+    assert recommended.planner_track_psd == 10.0  # Case 2's random walk: a second filter
     assert recommended.pretrain_spec().preset == "metric-scaffold"
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
@@ -270,6 +272,33 @@ def test_the_planner_distance_is_a_setting_old_episodes_keep_without_it(tmp_path
 
 
 @pytest.mark.slow
+def test_a_second_filter_at_the_fusions_own_q_flies_the_one_filter_episode(
+    quick_pretrained_case2, tmp_path
+):
+    # Case 2's recommended setting flies the planner on a q = 10 filter; `--track-psd 1` (the
+    # fusion's own q) gives back the one-filter episode to the bit, the way to reproduce a
+    # recommended Case 2 figure flown before the second filter joined the setting.
+    one = TrackConfig(
+        scenario=load_scenario("case2"), method="fixed", seed=3, duration=12.0,
+        environment="crop_field", runtime="torch", pretrained=quick_pretrained_case2,
+        out=tmp_path / "one", progress=False, animate=False,
+    )  # fmt: skip
+    assert one.planner_track_psd is None and one.fusion_config().acceleration_psd == 1.0
+    logs = {}
+    for name, config in (
+        ("one", one),
+        ("own q", replace(one, track_psd=1.0, out=tmp_path / "own")),
+        ("q 10", replace(one, random_walk_track_psd=10.0, out=tmp_path / "fast")),
+    ):
+        run_episode(config)
+        with np.load(config.out / "episode.npz") as episode:
+            logs[name] = {key: episode[key] for key in episode.files}
+    for key, value in logs["one"].items():
+        np.testing.assert_array_equal(logs["own q"][key], value, err_msg=key)
+    assert not np.array_equal(logs["q 10"]["track_position"], logs["one"]["track_position"])
+
+
+@pytest.mark.slow
 def test_a_second_filter_flies_the_tracks_and_the_labels_keep_their_own(quick_pretrained, tmp_path):
     config = TrackConfig(
         scenario=load_scenario("case1"), method="fixed", seed=3, duration=12.0,
@@ -286,12 +315,16 @@ def test_a_second_filter_flies_the_tracks_and_the_labels_keep_their_own(quick_pr
     assert labels.config == config.fusion_config() and labels.config.acceleration_psd != 10.0
     assert labels.measurements == tracks.measurements > 0
     with np.load(tmp_path / "episode.npz") as episode:
-        logged = episode["track_position"]
+        logged, trace = episode["track_position"], episode["trace"]
     for j, target in enumerate(config.scenario.target_ids):
         mine, theirs = tracks.history(target), labels.history(target)
         np.testing.assert_array_equal(mine.t, theirs.t)
         # The episode logs the planner's tracks: the last one is the q = 10 filter's.
         np.testing.assert_allclose(logged[-1, j], mine.mean[-1, :2], rtol=0, atol=1e-12)
+        # ... and the Tr P of the fusion's own filter, which the planner weighs.
+        own = np.trace(theirs.covariance[-1])
+        assert trace[-1, j] == pytest.approx(own, rel=1e-12)
+        assert abs(np.trace(mine.covariance[-1]) - own) > 1e-6
         assert np.abs(mine.mean[:, :2] - theirs.mean[:, :2]).max() > 1e-3
     assert config.describe()["track_psd"] == 10.0
     assert "track_psd" not in replace(config, track_psd=None).describe()  # old episodes reuse
