@@ -1,12 +1,15 @@
 """End to end: closed-loop episodes (Case 3 by default) with DroneFL and, as the reference,
 fixed models.
 
-Both episodes run in the same process, one after the other, with the settings of Table I
-(orchard, projection detector, seed 0, an FL round every 100 s for DroneFL; models pretrained in
-the crop field, cached under ``pretrained``). The speed is simulated seconds per wall second;
-DroneFL's includes its Flower rounds (one Flower simulation engine, Ray with two workers of one
-CPU, kept up for the episode). The same DroneFL episode gives DroneFL's communication per drone
-with fp32 weights; a third episode, DroneFL with fp16 weights, gives it with fp16.
+Both episodes run in the same process, one after the other: orchard, projection detector, seed
+0, an FL round every 100 s for DroneFL, models pretrained in the crop field (cached under
+``pretrained``), and otherwise the :class:`~dronefl.experiments.track.TrackConfig` defaults,
+the ``ours`` setting (10 local epochs with Adam per round), not the recommended setting that
+Table I flies since 2026-12-05 (one SGD epoch per round; docs/benchmarks.md). The speed is
+simulated seconds per wall second; DroneFL's includes its Flower rounds (one Flower simulation
+engine, Ray with two workers of one CPU, kept up for the episode). The same DroneFL episode
+gives DroneFL's communication per drone with fp32 weights; a third episode, DroneFL with fp16
+weights, gives it with fp16.
 """
 
 from __future__ import annotations
