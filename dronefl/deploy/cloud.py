@@ -64,7 +64,9 @@ from dronefl.tracking.fusion import (
     NOISE_SPLITS,
     check_track_psd,
     constant_speed_q,
+    planner_filter_config,
     planner_forecast,
+    update_filters,
 )
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.validation import check_one_of
@@ -168,11 +170,12 @@ class CloudSettings:
             value = config[key]
             if kind == "bool" and not isinstance(value, bool):
                 raise CloudError(f"run config: {key!r} must be a bool, got {value!r}")
-            if kind != "bool":
-                if kind == "float | None":
-                    value = float(value) or None  # 0 stands for None (to_run_config)
-                else:
-                    value = float(value) if kind == "float" else str(value)
+            if kind == "float | None":
+                value = float(value) or None  # 0 stands for None (to_run_config)
+            elif kind == "float":
+                value = float(value)
+            elif kind != "bool":
+                value = str(value)
             values[name] = value
         return cls(**values)
 
@@ -219,8 +222,9 @@ class CloudEpisode:
         self.label_fuser: Fuser | None = None
         if settings.track_psd is not None:
             self.label_fuser = Fuser(s.target_ids, s.drone_ids, fusion)
-            fusion = replace(fusion, acceleration_psd=settings.track_psd)
-        self.fuser = Fuser(s.target_ids, s.drone_ids, fusion)
+        self.fuser = Fuser(
+            s.target_ids, s.drone_ids, planner_filter_config(fusion, settings.track_psd)
+        )
         self.planner = DroneFLPlanner.from_scenario(
             s, PlannerConfig(distance_at=settings.planner_distance)
         )
@@ -391,9 +395,7 @@ class CloudEpisode:
                     PositionMeasurement(drone_id, target_id, position, noise.get(target_id))
                 )
         dt = self.scenario.dt
-        tracks = fused = self.fuser.update(telemetry.t + dt, measurements)
-        if self.label_fuser is not None:
-            fused = self.label_fuser.update(telemetry.t + dt, measurements)
+        tracks, fused = update_filters(self.fuser, self.label_fuser, telemetry.t + dt, measurements)
         for target_id, track in tracks.items():
             self.track_position[k + 1, self.column[target_id]] = track.position
         for target_id, track in fused.items():  # the uncertainty the planner trades

@@ -203,6 +203,7 @@ def _commands(
     world_at, cloud_at = f"{HOST}:{ports['world Zenoh']}", f"{HOST}:{ports['cloud Zenoh']}"
     superlink = f"{HOST}:{ports['SuperLink']}"
     tls = ["--tls-dir", str(certs.folder)] if certs else []
+    track_psd = planner_track_psd(scenario, None, config.random_walk_track_psd)  # the cloud's
     base = [sys.executable, "-m", "dronefl.cli"]
     common = ["--scenario", config.scenario, "--start-timeout", str(config.start_timeout), *tls]
     commands = {
@@ -226,12 +227,7 @@ def _commands(
                 if config.constant_speed_psd is not None
                 else []
             ),
-            *(
-                ["--track-psd", repr(track_psd)]
-                if (track_psd := planner_track_psd(scenario, None, config.random_walk_track_psd))
-                is not None
-                else []
-            ),
+            *(["--track-psd", repr(track_psd)] if track_psd is not None else []),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

@@ -28,7 +28,7 @@ from dronefl.config import Scenario, load_scenario
 from dronefl.experiments.episode import all_sent, received_predictions
 from dronefl.io import atomic_write_json, atomic_write_text
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
-from dronefl.tracking.fusion import check_track_psd
+from dronefl.tracking.fusion import check_track_psd, planner_filter_config, update_filters
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
 from dronefl.tracking.reports import (
     forecast_residual_reports,
@@ -404,11 +404,10 @@ def replay(
     else:
         episode = replace(episode, prediction=sent_predictions(episode))
     check_track_psd("--track-psd", track_psd)
-    label_fuser = Fuser(scenario.target_ids, scenario.drone_ids, config)
-    fuser = label_fuser
-    if track_psd is not None:
-        tracked = replace(config, acceleration_psd=track_psd)
-        fuser = Fuser(scenario.target_ids, scenario.drone_ids, tracked)
+    fuser = Fuser(scenario.target_ids, scenario.drone_ids, planner_filter_config(config, track_psd))
+    label_fuser = (
+        None if track_psd is None else Fuser(scenario.target_ids, scenario.drone_ids, config)
+    )
     n_steps = episode.prediction.shape[0]
     fused = np.full_like(episode.track_position, np.nan)
     seen = np.isfinite(episode.prediction).all(axis=-1)  # (K, M, N)
@@ -423,15 +422,15 @@ def replay(
             )
             for i, j in zip(*np.nonzero(seen[k]), strict=True)
         ]
-        for target_id, track in fuser.update(float(episode.t[k + 1]), measurements).items():
+        tracks, _ = update_filters(fuser, label_fuser, float(episode.t[k + 1]), measurements)
+        for target_id, track in tracks.items():
             fused[k + 1, target_ids.index(target_id)] = track.position
-        if label_fuser is not fuser:
-            label_fuser.update(float(episode.t[k + 1]), measurements)
-    made = make_labels(labels, label_fuser, episode.t, episode.target_position, max_std)
+    labelled = fuser if label_fuser is None else label_fuser
+    made = make_labels(labels, labelled, episode.t, episode.target_position, max_std)
     truth = episode.target_position
     targets = []
     for j, target_id in enumerate(scenario.target_ids):
-        drones, best, paired, oracle = [], np.inf, float("nan"), float("nan")
+        drones, best, best_i, paired, oracle = [], np.inf, 0, float("nan"), float("nan")
         errors = episode.prediction[:, :, j] - truth[1:, None, j]  # (K, M, 2)
         for i, drone_id in enumerate(scenario.drone_ids):
             ok = seen[:, i, j]
@@ -439,8 +438,9 @@ def replay(
                 mse = float((errors[ok, i] ** 2).sum(-1).mean())
                 drones.append(DroneError(drone_id, mse, int(ok.sum())))
                 if mse < best:  # the fused track at k + 1 on the steps k this drone predicted
-                    best, paired = mse, _mse(fused[1:][ok, j], truth[1:][ok, j])
-                    oracle = oracle_weighting_mse(errors, seen[:, :, j], i)
+                    best, best_i, paired = mse, i, _mse(fused[1:][ok, j], truth[1:][ok, j])
+        if drones:
+            oracle = oracle_weighting_mse(errors, seen[:, :, j], best_i)
         targets.append(
             TargetReplay(
                 target_id,

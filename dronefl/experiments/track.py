@@ -86,8 +86,10 @@ from dronefl.tracking.fusion import (
     NOISE_SPLITS,
     TUNED_CONSTANT_SPEED_PSD,
     constant_speed_q,
+    planner_filter_config,
     planner_forecast,
     planner_track_psd,
+    update_filters,
 )
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.tracking.reports import NoiseReporter, detected_now
@@ -378,10 +380,7 @@ class TrackConfig:
     def track_fusion_config(self) -> FusionConfig:
         """The settings of the filter whose tracks the planner flies on: :meth:`fusion_config`
         with q = :attr:`planner_track_psd` (the same when that is ``None``)."""
-        config = self.fusion_config()
-        if self.planner_track_psd is None:
-            return config
-        return dataclasses.replace(config, acceleration_psd=self.planner_track_psd)
+        return planner_filter_config(self.fusion_config(), self.planner_track_psd)
 
     def planner_config(self) -> PlannerConfig:
         """The cloud planner's settings: the paper's weights, ``planner_distance``."""
@@ -579,9 +578,8 @@ class ClosedLoop:
             if self.learner.cloud_predicts:
                 self._send_raw_inputs(k, record, odometry.vector, detections)
             measurements += self._predict(k, i, record)
-        tracks = fused = self.fuser.update(self.world.t + self.world.dt, measurements)
-        if self.label_fuser is not None:
-            fused = self.label_fuser.update(self.world.t + self.world.dt, measurements)
+        t = self.world.t + self.world.dt
+        tracks, fused = update_filters(self.fuser, self.label_fuser, t, measurements)
         self._record_tracks(k, tracks, fused)
         started = time.perf_counter()
         forecast = planner_forecast(self.fuser, self.label_fuser, tracks, self.world.dt)

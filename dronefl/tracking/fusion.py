@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -503,6 +503,25 @@ class Fuser:
             predicted[row] = f @ self._cov[k] @ f.T + self.model.process_noise(self._mean[k], dt)
         noise = self.method.noise()[:, index]
         return TrackForecast(ids, self.drone_ids, positions, predicted, noise)
+
+
+def planner_filter_config(config: FusionConfig, track_psd: float | None) -> FusionConfig:
+    """The settings of the planner's filter: the fusion's ``config`` with q = ``track_psd``
+    m^2/s^3 (``config`` itself when that is ``None``: one filter for both)."""
+    return config if track_psd is None else replace(config, acceleration_psd=track_psd)
+
+
+def update_filters(
+    fuser: Fuser, label_fuser: Fuser | None, t: float, measurements: Sequence[PositionMeasurement]
+) -> tuple[dict[int, Track], dict[int, Track]]:
+    """One update at ``t`` s of the planner's ``fuser`` and, when there is a second one, of the
+    fusion's own ``label_fuser`` with the same ``measurements``: ``(tracks, fused)``, the
+    planner's tracks and those of the filter whose history gives the labels and whose ``Tr P``
+    the planner weighs (the same dict with one filter)."""
+    tracks = fuser.update(t, measurements)
+    if label_fuser is None:
+        return tracks, tracks
+    return tracks, label_fuser.update(t, measurements)
 
 
 def planner_forecast(
