@@ -154,7 +154,7 @@ def demo(
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
     the recommended setting (--config metric-scaffold --label-drones others --epochs 1
     --noise-split reported --correct-bias --detected-only --planner-distance rest
-    --constant-speed-psd 0.001 --random-walk-track-psd 10; the last two act on Cases 1 and 3
+    --constant-speed-psd 0.001 --random-walk-track-psd 30; the last two act on Cases 1 and 3
     and on Case 2 only), for 600 s:
     seed 0 of the README's Table I row of that setting.
 
@@ -1036,7 +1036,9 @@ def pretrain(
 @app.command()
 def replay(
     ctx: typer.Context,
-    episode: Annotated[Path, typer.Argument(help="A `dronefl track` folder (episode.npz).")],
+    episode: Annotated[
+        Path, typer.Argument(help="A `dronefl track` or `dronefl deploy up` folder (episode.npz).")
+    ],
     as_flown: Annotated[
         bool,
         typer.Option(
@@ -1113,7 +1115,7 @@ def replay(
     """Re-fuse and smooth an episode's recorded predictions with other fusion settings; print,
     per target, each drone's prediction MSE beside the fused track's and the labels'. Without
     --as-flown every fusion option left out is the closed loop's default for the scenario;
-    with it, the episode's own.
+    with it, the episode's own. A `deploy up` folder replays what its cloud received.
 
     Example: dronefl replay runs/c2 --as-flown --method paper --out runs/c2/replay_paper
     """

@@ -64,6 +64,7 @@ from dronefl.tracking.fusion import (
     NOISE_SPLITS,
     check_track_psd,
     constant_speed_q,
+    fusion_record,
     planner_filter_config,
     planner_forecast,
     update_filters,
@@ -219,6 +220,7 @@ class CloudEpisode:
             noise_split=settings.noise_split,
         )
         # The planner's tracks; with a q of their own the labels have a filter of their own.
+        self.fusion = fusion
         self.label_fuser: Fuser | None = None
         if settings.track_psd is not None:
             self.label_fuser = Fuser(s.target_ids, s.drone_ids, fusion)
@@ -242,6 +244,7 @@ class CloudEpisode:
         self.nodes: dict[int, int] = {}  # drone id -> its SuperNode's id
         m, n = len(s.drones), len(s.targets)
         self.prediction = np.full((self.n_steps, m, n, 2), np.nan)
+        self.noise = np.full((self.n_steps, m, n, 2, 2), np.nan)  # the reports received, m^2
         self.drone_position = np.full((self.n_steps, m, 2), np.nan)  # telemetry of each step
         self.track_position = np.full((self.n_steps + 1, n, 2), np.nan)
         self.trace = np.full((self.n_steps, n), np.nan)
@@ -391,6 +394,8 @@ class CloudEpisode:
                 if target_id not in self.column:
                     continue
                 self.prediction[k, i, self.column[target_id]] = position
+                if target_id in noise:
+                    self.noise[k, i, self.column[target_id]] = noise[target_id]
                 measurements.append(
                     PositionMeasurement(drone_id, target_id, position, noise.get(target_id))
                 )
@@ -550,6 +555,7 @@ class CloudEpisode:
         atomic_savez(
             out / "cloud.npz",
             prediction=self.prediction,
+            noise=self.noise,
             track_position=self.track_position,
             trace=self.trace,
             cost=self.cost,
@@ -575,4 +581,5 @@ class CloudEpisode:
             telemetry_bytes=self.telemetry_bytes,
             supernodes=dict(sorted(self.nodes.items())),
             settings=asdict(self.settings),
+            fusion_config=fusion_record(self.fusion),
         ).save(out / "cloud.json")

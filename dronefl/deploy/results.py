@@ -11,6 +11,7 @@ of a step against the 200 ms budget, and the processes and their peak memory.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,6 +25,8 @@ from dronefl.experiments.episode import (
     EpisodeMetrics,
     tracking_metrics,
 )
+from dronefl.experiments.replay import REPORTS_NAME
+from dronefl.io import atomic_savez
 from dronefl.results import load_result, save_result
 from dronefl.tracking import set_distances
 
@@ -61,7 +64,9 @@ class CloudLog:
     ``late_predictions`` per drone: predictions that arrived after their step's deadline;
     ``traffic`` every byte count of the drone <-> cloud link (predictions as received,
     controls, labels and weights as sent); ``telemetry_bytes`` the world's telemetry;
-    ``supernodes`` each drone's SuperNode id; ``settings`` as given.
+    ``supernodes`` each drone's SuperNode id; ``settings`` as given; ``fusion_config`` the
+    settings of the fusion's filter, whose history gives the labels
+    (:func:`~dronefl.tracking.fusion.fusion_record`; ``None`` in a file written before it).
     """
 
     wall_seconds: float
@@ -74,6 +79,7 @@ class CloudLog:
     telemetry_bytes: int
     supernodes: dict[int, int]
     settings: dict[str, str | float]
+    fusion_config: str | None = None
 
     def save(self, path: Path) -> Path:
         return save_result(path, self)
@@ -138,10 +144,25 @@ class RunInfo:
     peak_memory_mb: float | None = None
 
 
+def _flown(summary: CloudLog) -> dict[str, str | float]:
+    """What the cloud fused with, as ``dronefl track`` records it in ``metrics.json``'s config
+    (``fusion_config``; ``track_psd`` when the planner flew on a second filter), so that
+    ``dronefl replay --as-flown`` re-fuses a deployed episode as it ran."""
+    flown: dict[str, str | float] = {}
+    if summary.fusion_config is not None:
+        flown["fusion_config"] = summary.fusion_config
+    track_psd = summary.settings.get("track_psd")  # None reads back as NaN
+    if isinstance(track_psd, float) and math.isfinite(track_psd):
+        flown["track_psd"] = track_psd
+    return flown
+
+
 def deployment_metrics(
     scenario: Scenario, world_dir: Path, cloud_dir: Path, out: Path, run: RunInfo
 ) -> DeploymentMetrics:
-    """Join ``world.npz`` and ``cloud.npz``/``cloud.json``; writes ``<out>/episode.npz``."""
+    """Join ``world.npz`` and ``cloud.npz``/``cloud.json``; writes ``<out>/episode.npz`` and,
+    for ``dronefl replay``, ``<out>/reports.npz`` (``noise`` ``(K, M, N, 2, 2)`` m^2: the noise
+    report the cloud received with each prediction, NaN where none came)."""
     with (
         np.load(Path(world_dir) / "world.npz") as world,
         np.load(Path(cloud_dir) / "cloud.npz") as cloud,
@@ -162,6 +183,8 @@ def deployment_metrics(
         fl_steps=[int(k) for k in logged["fl_steps"]],
     )
     log.save(Path(out) / "episode.npz")
+    if "noise" in logged:  # a cloud.npz of 2026-12-06 (afternoon) on
+        atomic_savez(Path(out) / REPORTS_NAME, noise=logged["noise"])
     ids = scenario.drone_ids
     rounds = summary.rounds
     sim_seconds = n_steps * scenario.dt
@@ -191,7 +214,7 @@ def deployment_metrics(
         gating_rejections=summary.gating_rejections,
         track_resets=summary.track_resets,
         centralized_inputs=None,
-        config=run.config,
+        config={**run.config, **_flown(summary)},
         engine=ENGINE,
         silent_steps={d: int(logged["silent"][:, i].sum()) for i, d in enumerate(ids)},
         late_predictions=summary.late_predictions,

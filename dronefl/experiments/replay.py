@@ -13,6 +13,10 @@ records in the episode's ``checkpoint.pkl`` (:func:`drone_reports`): the boxes a
 each drone stored, the same data from which it would have computed them in flight; with
 ``correct_bias`` the predictions are first corrected as the drones would have corrected them
 (:mod:`dronefl.tracking.reports`), which needs an episode flown without the correction.
+
+A ``dronefl deploy up`` folder replays too: its ``episode.npz`` holds the predictions the cloud
+received and its ``reports.npz`` (:data:`REPORTS_NAME`) the noise reports that came with
+them, which are used as they are (the drones' onboard records stay on the drones).
 """
 
 from __future__ import annotations
@@ -55,7 +59,10 @@ class Episode:
     with (``metrics.json``'s ``fusion_config``; ``None`` for an episode that does not record
     them) and ``detected_only`` whether it was flown with ``track --detected-only``;
     ``flown_track_psd`` the q of the second filter the planner flew on (``metrics.json``'s
-    ``track_psd``; ``None``: one filter).
+    ``track_psd``; ``None``: one filter); ``received_reports`` ``(K, M, N, 2, 2)`` m^2 the
+    noise reports a deployed cloud received (:data:`REPORTS_NAME`; ``None`` for a ``track``
+    episode), whose ``prediction`` then holds what the cloud received: nothing is withheld
+    from it or rebuilt.
     """
 
     path: Path
@@ -70,6 +77,7 @@ class Episode:
     flown_fusion: FusionConfig | None = None
     detected_only: bool = False
     flown_track_psd: float | None = None
+    received_reports: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.sent is None:
@@ -82,7 +90,9 @@ def load_episode(folder: str | Path) -> Episode:
     npz, meta = folder / "episode.npz", folder / "metrics.json"
     for path in (npz, meta):
         if not path.is_file():
-            raise EpisodeError(f"{path}: not found (is {folder} a `dronefl track` folder?)")
+            raise EpisodeError(
+                f"{path}: not found (is {folder} a `dronefl track` or `deploy up` folder?)"
+            )
     try:
         config = json.loads(meta.read_text())["config"]
         name = config["scenario"] if "scenario" in config else f"case{int(config['case'])}"
@@ -108,12 +118,28 @@ def load_episode(folder: str | Path) -> Episode:
     if sent is not None and sent.shape != expected["prediction"][:3]:
         shape = expected["prediction"][:3]
         raise EpisodeError(f"{npz}: sent has shape {sent.shape}, expected {shape}")
+    received = _received_reports(folder / REPORTS_NAME, (k, m, n, 2, 2))
     corrected, net = bool(config.get("correct_bias")), bool(config.get("net_reports"))
     return Episode(
         folder, scenario, **arrays, bias_corrected=corrected, sent=sent, net_reports=net,
         flown_fusion=_flown_fusion(config), detected_only=bool(config.get("detected_only")),
-        flown_track_psd=config.get("track_psd"),
+        flown_track_psd=config.get("track_psd"), received_reports=received,
     )  # fmt: skip
+
+
+def _received_reports(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
+    """A deployed episode's noise reports (:data:`REPORTS_NAME`), ``None`` if ``path`` is not
+    there; :class:`EpisodeError` names the file if it is unreadable or of another shape."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path) as data:
+            noise = np.asarray(data["noise"], dtype=float)
+    except (OSError, ValueError, KeyError) as exc:
+        raise EpisodeError(f"{path}: unreadable or without its noise array ({exc})") from None
+    if noise.shape != shape:
+        raise EpisodeError(f"{path}: noise has shape {noise.shape}, expected {shape}")
+    return noise
 
 
 def _flown_fusion(config: dict) -> FusionConfig | None:
@@ -127,6 +153,9 @@ def _flown_fusion(config: dict) -> FusionConfig | None:
 
 
 _ARRAYS = ("prediction", "target_position", "track_position", "t")
+#: The file of a deployed episode with the noise reports the cloud received
+#: (``noise`` ``(K, M, N, 2, 2)`` m^2, NaN where none came; written by ``deploy up``).
+REPORTS_NAME = "reports.npz"
 
 
 @dataclass(frozen=True)
@@ -392,10 +421,20 @@ def replay(
             "without --correct-bias"
         )
     rebuilt = config.noise_split == "reported" or correct_bias  # from the drones' records
+    reports = None
+    if episode.received_reports is not None:  # deployed: as received, nothing to rebuild
+        if correct_bias or net_reports:
+            raise EpisodeError(
+                f"{episode.path}: a deployed episode holds what the cloud received (the "
+                "drones' records stay on the drones); replay it without --correct-bias and "
+                "--net-reports"
+            )
+        if config.noise_split == "reported":
+            reports = episode.received_reports
+        rebuilt = detected_only = False
     records = episode_records(episode) if detected_only or rebuilt else None  # read once
     if detected_only:
         episode = withhold_undetected(episode, records)
-    reports = None
     if rebuilt:
         sent, reports = drone_reports(episode, correct_bias, net_reports, records)
         episode = replace(episode, prediction=sent)

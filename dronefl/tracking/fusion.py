@@ -12,9 +12,10 @@ next predict + update.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
@@ -621,6 +622,16 @@ def fusion_config(
         motion="mean_reverting",
         velocity_time_constant=RANDOM_WALK_VELOCITY_TIME_CONSTANT,
     )
+
+
+def fusion_record(config: FusionConfig) -> str:
+    """``config`` as an episode's ``metrics.json`` records it (``fusion_config``, read back by
+    ``dronefl replay --as-flown``): JSON of every field, keys sorted, without ``noise_split``
+    when it is ``adaptive`` (as every episode flown before that field existed records it)."""
+    fields = asdict(config)
+    if fields["noise_split"] == "adaptive":
+        del fields["noise_split"]
+    return json.dumps(fields, sort_keys=True)
 
 
 def has_random_walk(scenario: Scenario) -> bool:

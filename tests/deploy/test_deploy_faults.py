@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import time
+from dataclasses import replace
 
 import numpy as np
 import psutil
@@ -21,6 +22,7 @@ from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import load_model, save_model
 from dronefl.deploy.processes import port_open, wait_for
 from dronefl.deploy.results import DeploymentMetrics
+from dronefl.experiments.replay import flown_config, load_episode, replay
 from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
@@ -52,7 +54,9 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
         "deploy", "up", "--setting", "ours", "--scenario", "case2", "--env", "crop_field",
         "--seed", "3",
         "--duration", "60", "--fl-period", "25", "--config", "metric-scaffold", "--epochs", "1",
-        "--label-drones", "lower", "--deshrink-labels", "--base-port", str(free_port_block()),
+        "--label-drones", "lower", "--deshrink-labels", "--random-walk-track-psd", "30",
+        "--noise-split", "reported",
+        "--base-port", str(free_port_block()),
         "--out", str(out),
         "--pretrained", str(quick_pretrained_case2), "--restart-drones",
     )  # fmt: skip
@@ -79,6 +83,24 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert survivors(run_env[MARK]) == []
     metrics = DeploymentMetrics.load(out / "metrics.json")
     assert metrics.engine == "deployment"
+    # The planner flew on a second, q = 30 filter, the labels' filter the fusion's own, with
+    # the drones' noise reports: the replay of what the cloud received (predictions and
+    # reports), with the settings the deployment records, gives back its tracks; one filter
+    # or the adaptive split does not.
+    assert metrics.config["track_psd"] == 30.0
+    episode = load_episode(out)
+    flown_fusion = flown_config(episode)
+    assert flown_fusion.noise_split == "reported" and episode.received_reports is not None
+    assert np.isfinite(episode.received_reports).any()
+    flown = replay(episode, flown_fusion, track_psd=episode.flown_track_psd)
+    assert flown.track_psd == 30.0
+    for other in (
+        replay(episode, flown_fusion),
+        replay(episode, replace(flown_fusion, noise_split="adaptive"), track_psd=30.0),
+    ):
+        for target, changed in zip(flown.targets, other.targets, strict=True):
+            assert target.fused_mse == pytest.approx(target.recorded_mse, rel=1e-9, abs=1e-12)
+            assert changed.fused_mse != pytest.approx(target.recorded_mse, rel=1e-3)
     assert metrics.processes >= 7  # world, cloud, SuperLink, 3 drones, 3 SuperNodes, ...
 
     # Rounds at steps 125 and 250 (t = 25 s, 50 s): the episode went on. Drone 3 flies lowest

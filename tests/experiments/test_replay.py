@@ -14,6 +14,7 @@ from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
 from dronefl.experiments.replay import (
+    REPORTS_NAME,
     EpisodeError,
     drone_reports,
     flown_config,
@@ -26,6 +27,7 @@ from dronefl.experiments.replay import (
 from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config
+from dronefl.tracking.fusion import fusion_record
 
 DT = 0.2  # s, the scenarios' step
 
@@ -359,3 +361,45 @@ def test_replay_fuses_only_what_the_drones_detected(tmp_path):
     np.savez(folder / "episode.npz", **arrays)
     with pytest.raises(EpisodeError, match="sent has shape"):
         load_episode(folder)
+
+
+@pytest.mark.parametrize("noise_split", ["adaptive", "reported"])
+def test_the_recorded_fusion_settings_read_back_as_flown(tmp_path, noise_split):
+    # What `track` and `deploy up` write into metrics.json is what `replay --as-flown` reads;
+    # an adaptive split is left out, as in every episode flown before the field existed.
+    _episode(tmp_path / "ep")
+    config = replace(fusion_config(load_scenario("case2")), noise_split=noise_split)
+    record = fusion_record(config)
+    assert ("noise_split" in json.loads(record)) == (noise_split == "reported")
+    meta = tmp_path / "ep" / "metrics.json"
+    meta.write_text(json.dumps({"config": {"case": 2, "fusion_config": record, "track_psd": 30.0}}))
+    episode = load_episode(tmp_path / "ep")
+    assert flown_config(episode) == config and episode.flown_track_psd == 30.0
+
+
+def test_a_deployed_episode_replays_with_the_reports_the_cloud_received(tmp_path):
+    # `deploy up` writes reports.npz beside episode.npz: the noise each prediction came with.
+    # They are fused as received (nothing withheld or rebuilt: the records stay on the drones).
+    prediction, _ = _episode(tmp_path / "ep")
+    config = replace(replay_config(load_scenario("case2")), noise_split="reported")
+    noise = np.full((*prediction.shape[:3], 2, 2), np.nan)
+    noise[:, 0] = 0.25 * np.eye(2)  # drones 1 and 2 report their true noise (the split
+    noise[:, 1, 1] = 0.04 * np.eye(2)  # acts where two drones see a target: target 2)
+    np.savez(tmp_path / "ep" / REPORTS_NAME, noise=noise)
+    episode = load_episode(tmp_path / "ep")
+    assert episode.received_reports is not None
+    # --detected-only (as flown) withholds nothing: what the cloud received was what was sent.
+    reported, plain = replay(episode, config, detected_only=True), replay(episode, config)
+    assert (reported.fused_mse, reported.label_mse, reported.measurements) == (
+        plain.fused_mse,
+        plain.label_mse,
+        plain.measurements,
+    )
+    ignored = replay(episode, replace(config, noise_split="adaptive"))
+    assert reported.fused_mse != ignored.fused_mse
+    for option in ("net_reports", "correct_bias"):
+        with pytest.raises(EpisodeError, match="--net-reports"):
+            replay(episode, config, **{option: True})
+    np.savez(tmp_path / "ep" / REPORTS_NAME, noise=noise[:-1])
+    with pytest.raises(EpisodeError, match=f"{REPORTS_NAME}: noise has shape"):
+        load_episode(tmp_path / "ep")

@@ -102,16 +102,16 @@ def test_the_planners_own_filter_is_for_random_walk_targets_only(tmp_path):
         fields = setting_fields("recommended", **chosen)
         return TrackConfig(scenario=load_scenario(case), out=tmp_path, **fields)
 
-    # Case 2 (random walk): the recommended setting flies the planner on a q = 10 filter,
-    # recorded as the episode's track_psd (the same as `--track-psd 10` beside one filter).
+    # Case 2 (random walk): the recommended setting flies the planner on a q = 30 filter,
+    # recorded as the episode's track_psd (the same as `--track-psd 30` beside one filter).
     case2 = config("case2")
-    assert case2.planner_track_psd == 10.0
-    assert case2.track_fusion_config().acceleration_psd == 10.0
+    assert case2.planner_track_psd == 30.0
+    assert case2.track_fusion_config().acceleration_psd == 30.0
     assert case2.fusion_config().acceleration_psd == 1.0  # the labels' filter
-    assert case2.describe()["track_psd"] == 10.0 and "random_walk_track_psd" not in (
+    assert case2.describe()["track_psd"] == 30.0 and "random_walk_track_psd" not in (
         case2.describe()
     )
-    explicit = replace(case2, random_walk_track_psd=None, track_psd=10.0)
+    explicit = replace(case2, random_walk_track_psd=None, track_psd=30.0)
     assert explicit.settings() == case2.settings()
     # Cases 1 and 3 (constant speed) keep one filter: their episodes are those flown before.
     case3 = config("case3")
