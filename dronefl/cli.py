@@ -937,13 +937,21 @@ def table1(
     pretrained: PretrainedOption = Path("runs/pretrained"),
     pretrain_rounds: PretrainRoundsOption = 20,
     pretrain_seconds: PretrainSecondsOption = 600.0,
+    label_ablation: Annotated[
+        bool,
+        typer.Option(
+            "--label-ablation",
+            help="Also DroneFL with each other source of pseudo-labels (smoothed, filtered, "
+            "ground_truth), as rows dronefl[labels=SOURCE].",
+        ),
+    ] = False,
     out: OutOption = Path("runs/table1"),
 ) -> None:
     """Table I: every scenario x method x seed; markdown, CSV and a plot.
 
     Finished episodes (of the same settings, the detector included) are reused, so an
     interrupted run resumes. --setting as `track`'s (default recommended; paper: the paper's
-    system as written).
+    system as written). --label-ablation adds DroneFL's label-ablation rows.
     Example: dronefl table1 --seeds "0 1 2 3 4" --scenarios "case1 case2 case3" --out runs/table1
     """
     from dronefl.experiments.table1 import TABLE1_METHODS, episode_configs, run_table1
@@ -969,10 +977,10 @@ def table1(
     )  # fmt: skip
     seed_list = _int_list(seeds, "--seeds")
     try:
-        episode_configs(base, specs, chosen, seed_list)
+        episode_configs(base, specs, chosen, seed_list, label_ablation)
     except ValueError as exc:  # a method that cannot fly these settings
         raise fail(str(exc)) from None
-    episodes = run_table1(base, specs, chosen, seed_list)
+    episodes = run_table1(base, specs, chosen, seed_list, label_ablation)
     typer.echo((out / "table1.md").read_text())
     typer.echo(f"wrote {out}/table1.md, table1.csv, table1.png ({len(episodes)} episodes)")
 

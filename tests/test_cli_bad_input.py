@@ -209,6 +209,7 @@ BAD_OPTIONS = [
     "track --track-psd 0",
     "track --random-walk-track-psd 0",
     "table1 --random-walk-track-psd -1",
+    "table1 --methods fixed --label-ablation",
     "deploy up --random-walk-track-psd 0",
     "cloud --model FILE --track-psd -1",
     "track --planner-distance later",

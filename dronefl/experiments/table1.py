@@ -7,7 +7,9 @@ Each episode writes its own folder ``<out>/<scenario>/<method>/seed<K>/``; a fin
 (a ``metrics.json`` of the same scenario content and the same settings) is reused, so an
 interrupted table resumes where it stopped. :func:`summarize` gives one :class:`Table1Row`
 (mean ± std over seeds) per scenario and method; :mod:`dronefl.report` turns them into
-markdown, CSV and a plot.
+markdown, CSV and a plot. With ``label_ablation`` DroneFL is flown again with each other
+source of pseudo-labels (:data:`~dronefl.tracking.LABEL_SOURCES`), in
+``<out>/<scenario>/dronefl-labels-<source>/``, as rows ``dronefl[labels=<source>]``.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_met
 from dronefl.experiments.track import NOT_SETTINGS, TrackConfig, run_episode
 from dronefl.io import atomic_write_text
 from dronefl.results import ResultError
+from dronefl.tracking import LABEL_SOURCES
 
 #: Table I's columns, in the paper's order.
 METRICS: tuple[str, ...] = (
@@ -64,28 +67,50 @@ class Table1Row:
     wall_seconds: float
 
 
+def row_name(episode: EpisodeMetrics, base_labels: str | None = None) -> str:
+    """The Table I row ``episode`` belongs to: its method, with ``[labels=<source>]`` when
+    it learnt from other pseudo-labels than the table's ``base_labels`` (a label-ablation
+    row; ``None``: never)."""
+    if base_labels is None or episode.labels == base_labels:
+        return episode.method
+    return f"{episode.method}[labels={episode.labels}]"
+
+
 def episode_configs(
     base: TrackConfig,
     scenarios: tuple[Scenario, ...],
     methods: tuple[str, ...] | None = None,
     seeds: tuple[int, ...] = (0, 1, 2),
+    label_ablation: bool = False,
 ) -> list[TrackConfig]:
     """Every episode of the table: ``base`` for each scenario x method (default:
     :data:`TABLE1_METHODS` of the detector) x seed, each in its folder
-    ``<out>/<scenario>/<method>/seed<K>/``; ``ValueError`` naming the option for a method that
-    cannot fly these settings."""
+    ``<out>/<scenario>/<method>/seed<K>/``; with ``label_ablation``, after each scenario's,
+    DroneFL with every other label source (``<out>/<scenario>/dronefl-labels-<source>/``).
+    ``ValueError`` naming the option for a method that cannot fly these settings, or for
+    ``--label-ablation`` without ``dronefl`` among the methods."""
     out = Path(base.out)
     methods = TABLE1_METHODS[base.detector] if methods is None else methods
+    if label_ablation and "dronefl" not in methods:
+        raise ValueError("--label-ablation: it flies DroneFL again; give dronefl in --methods")
+    runs = [(method, base.labels, method) for method in methods]
+    if label_ablation:
+        runs += [
+            ("dronefl", labels, f"dronefl-labels-{labels}")
+            for labels in LABEL_SOURCES
+            if labels != base.labels
+        ]
     return [
         dataclasses.replace(
             base,
             scenario=scenario,
             method=method,
+            labels=labels,
             seed=seed,
-            out=out / scenario.name / method / f"seed{seed}",
+            out=out / scenario.name / folder / f"seed{seed}",
         )  # fmt: skip
         for scenario in scenarios
-        for method in methods
+        for method, labels, folder in runs
         for seed in seeds
     ]
 
@@ -95,30 +120,33 @@ def run_table1(
     scenarios: tuple[Scenario, ...],
     methods: tuple[str, ...] | None = None,
     seeds: tuple[int, ...] = (0, 1, 2),
+    label_ablation: bool = False,
 ) -> list[EpisodeMetrics]:
     """Run (or reuse) every episode of :func:`episode_configs` (all checked before any work);
     write ``table1.md``, ``table1.csv`` and ``table1.png`` into ``base.out`` and return every
     episode's metrics."""
     out = Path(base.out)
     episodes = []
-    for config in episode_configs(base, scenarios, methods, seeds):
+    for config in episode_configs(base, scenarios, methods, seeds, label_ablation):
         done = _finished(config)
         episodes.append(run_episode(config) if done is None else done)
-    rows = summarize(episodes)
+    rows = summarize(episodes, base.labels)
     from dronefl.report.tables import table1_csv, table1_markdown
     from dronefl.report.tracking import plot_table1_bars
 
     atomic_write_text(out / "table1.md", table1_markdown(rows))
-    atomic_write_text(out / "table1.csv", table1_csv(episodes))
+    names = [row_name(e, base.labels) for e in episodes]
+    atomic_write_text(out / "table1.csv", table1_csv(episodes, names))
     plot_table1_bars(rows, out / "table1.png")
     return episodes
 
 
-def summarize(episodes: list[EpisodeMetrics]) -> list[Table1Row]:
-    """Mean and std over seeds per (scenario, method), in the order first seen."""
+def summarize(episodes: list[EpisodeMetrics], base_labels: str | None = None) -> list[Table1Row]:
+    """Mean and std over seeds per (scenario, row), in the order first seen; the row is the
+    method, and the label source where it is not ``base_labels`` (:func:`row_name`)."""
     groups: dict[tuple[str, str], list[EpisodeMetrics]] = {}
     for e in episodes:
-        groups.setdefault((e.scenario, e.method), []).append(e)
+        groups.setdefault((e.scenario, row_name(e, base_labels)), []).append(e)
     rows = []
     for (scenario, method), group in groups.items():
         values = {m: [episode_value(e, m) for e in group] for m in COLUMNS}

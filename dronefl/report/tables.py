@@ -137,14 +137,15 @@ def table1_markdown(rows: list[Table1Row]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def table1_csv(episodes: list[EpisodeMetrics]) -> str:
-    """One CSV line per episode: scenario, method, seed, Table I's metrics, the prediction
-    error of the predictions sent and the fused-track error (m^2), OSPA and GOSPA (m), wall
-    time (s)."""
+def table1_csv(episodes: list[EpisodeMetrics], names: list[str] | None = None) -> str:
+    """One CSV line per episode: scenario, method (its row's ``names``, default the episode's
+    method), seed, Table I's metrics, the prediction error of the predictions sent and the
+    fused-track error (m^2), OSPA and GOSPA (m), wall time (s)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(["scenario", "method", "seed", *COLUMNS, "wall_seconds"])
-    for e in episodes:
+    names = [e.method for e in episodes] if names is None else names
+    for e, name in zip(episodes, names, strict=True):
         values = [episode_value(e, m) for m in COLUMNS]
-        writer.writerow([e.scenario, e.method, e.seed, *values, e.wall_seconds])
+        writer.writerow([e.scenario, name, e.seed, *values, e.wall_seconds])
     return buffer.getvalue()

@@ -203,5 +203,7 @@ def plot_table1_bars(rows: list[Table1Row], path: Path) -> Path:
         ax.set_xticks(np.arange(len(scenarios)), scenarios)
         ax.set_ylabel(label)
         ax.set_yscale("log")
-    axes[0].legend(fontsize=8)
+    handles, names = axes[0].get_legend_handles_labels()  # below the axes: never over a bar
+    fig.legend(handles, names, loc="lower center", ncol=min(len(methods), 5), fontsize=8)
+    fig.subplots_adjust(bottom=0.2)
     return save_figure(fig, path)

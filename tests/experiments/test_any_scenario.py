@@ -15,7 +15,14 @@ from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.fl_offline import OfflineResults
-from dronefl.experiments.table1 import METRICS, TABLE1_METHODS, _finished, run_table1
+from dronefl.experiments.table1 import (
+    METRICS,
+    TABLE1_METHODS,
+    _finished,
+    episode_configs,
+    row_name,
+    run_table1,
+)
 from dronefl.experiments.track import TrackConfig, setting_fields
 
 #: Table I's methods with the projection detector (the image baseline flies on frames only).
@@ -158,3 +165,39 @@ def test_an_episode_finished_before_the_sent_error_existed_gets_it_from_its_log(
     assert (old / "metrics.json").read_bytes() == written  # the old result is left as it was
     (old / "episode.npz").write_bytes(b"not an npz")
     assert np.isnan(_finished(config).tracking.sent_prediction_error)
+
+
+@pytest.mark.slow
+def test_table1_adds_dronefl_s_label_ablation_rows(table_dir, tmp_path):
+    # Issue #14's label-ablation rows: DroneFL again with filtered and ground-truth labels,
+    # beside the finished episodes (reused), as rows of their own in every output.
+    out = tmp_path / "table"
+    shutil.copytree(table_dir / "table", out)
+    base = TrackConfig(
+        scenario=load_scenario(SCENARIO), out=out, duration=18.0, fl_period=8.0,
+        pretrained=table_dir / "pretrained", pretrain_rounds=1, pretrain_seconds=20.0,
+        **setting_fields("recommended", epochs=1),
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="--label-ablation"):
+        episode_configs(base, (base.scenario,), ("fixed",), (0,), label_ablation=True)
+
+    episodes = run_table1(base, (base.scenario,), ("fixed", "dronefl"), (0,), label_ablation=True)
+
+    assert [(e.method, e.labels) for e in episodes] == [
+        ("fixed", "smoothed"), ("dronefl", "smoothed"),
+        ("dronefl", "filtered"), ("dronefl", "ground_truth"),
+    ]  # fmt: skip
+    assert [row_name(e, "smoothed") for e in episodes] == [
+        "fixed", "dronefl", "dronefl[labels=filtered]", "dronefl[labels=ground_truth]",
+    ]  # fmt: skip
+    for labels in ("filtered", "ground_truth"):
+        assert (out / "farm_5x8" / f"dronefl-labels-{labels}" / "seed0" / "metrics.json").is_file()
+    errors = [e.tracking.prediction_error for e in episodes[1:]]
+    assert len(set(errors)) == 3  # three label sources, three models
+    table = (out / "table1.md").read_text()
+    for name, episode in zip(("dronefl[labels=filtered]", "dronefl[labels=ground_truth]"),
+                             episodes[2:], strict=True):  # fmt: skip
+        (line,) = [row for row in table.splitlines() if f"| farm_5x8 | {name} (n=1) |" in row]
+        assert f"| {episode.tracking.prediction_error:.2f} ± 0.00 |" in line
+    names = [line.split(",")[1] for line in (out / "table1.csv").read_text().splitlines()[1:]]
+    assert names == [row_name(e, "smoothed") for e in episodes]
