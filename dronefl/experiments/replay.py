@@ -179,7 +179,10 @@ class TargetReplay:
     fraction of steps that got a label; ``recorded_mse``: the track as flown;
     ``oracle_mse_paired``: the best fixed weighting of the drones' predictions, fitted to the
     truth afterwards, over the best drone's steps (:func:`oracle_weighting_mse`; a reference
-    for what a fusion with fixed weights could reach, not an estimator).
+    for what a fusion with fixed weights could reach, not an estimator);
+    ``temporal_oracle_over_best`` and ``temporal_oracle_steps``: the same for the best linear
+    combination of the drones' last :data:`TEMPORAL_TAPS` predictions, against the best drone
+    on the steps where all of them exist (:func:`temporal_oracle`).
     """
 
     target_id: int
@@ -190,6 +193,8 @@ class TargetReplay:
     label_kept: float
     recorded_mse: float
     oracle_mse_paired: float = float("nan")
+    temporal_oracle_over_best: float = float("nan")
+    temporal_oracle_steps: int = 0
 
     @property
     def best_drone_mse(self) -> float:
@@ -235,6 +240,51 @@ def oracle_weighting_mse(errors: np.ndarray, seen: np.ndarray, best: int) -> flo
         ones = np.ones(len(gram))
         total += 1.0 / float(ones @ np.linalg.pinv(gram) @ ones)
     return total / int(steps.sum())
+
+
+#: Taps of :func:`temporal_oracle`: each drone's predictions of the last 2 s (0.2 s steps).
+TEMPORAL_TAPS = 10
+
+
+def temporal_oracle(
+    prediction: np.ndarray, truth: np.ndarray, best: int, taps: int = TEMPORAL_TAPS
+) -> tuple[float, int]:
+    r"""The best linear combination of one target's drones' predictions of the last ``taps``
+    steps, fitted to the truth afterwards, against the best drone alone: ``(ratio, steps)``.
+
+    ``prediction`` ``(K, M, 2)`` m: drone ``i``'s prediction at step ``k`` of the position at
+    ``k + 1`` (NaN: none); ``truth`` ``(K, 2)`` m: that position; ``best``: the best drone's
+    index. Over the drones that predicted the target at all (``D``) and the steps ``k`` where
+    each of them predicted it at ``k, k - 1, ..., k - taps + 1``, the estimate
+
+    .. math::
+        \hat x_k = \sum_{i \in D} \sum_{l < taps} w_{il} z_i(k - l),\qquad \sum w_{il} = 1
+
+    (one set of weights for both axes, so it stays unbiased and position-invariant) is fitted
+    by least squares; ``ratio`` is its MSE over the best drone's on those ``steps``
+    (``taps = 1``: the fixed-weights oracle of :func:`oracle_weighting_mse` on those steps).
+    Like that oracle it is an optimistic reference, not an estimator: what a linear filter of
+    the same predictions with these taps could reach at best. NaN (and 0 steps) when there
+    are fewer than ``4 taps |D|`` such steps.
+    """
+    drones = [i for i in range(prediction.shape[1]) if np.isfinite(prediction[:, i]).all(-1).any()]
+    k = np.arange(taps - 1, len(prediction))
+    z_best = prediction[k, best]
+    columns = [
+        prediction[k - lag, i] - z_best  # sum w = 1: the best drone's now takes the rest
+        for i in drones
+        for lag in range(taps)
+        if (i, lag) != (best, 0)
+    ]
+    y = truth[k] - z_best
+    x = np.stack(columns, axis=-1) if columns else np.zeros((len(k), 2, 0))
+    ok = np.isfinite(x).all(axis=(1, 2)) & np.isfinite(y).all(axis=1)
+    steps = int(ok.sum())
+    if steps < 4 * taps * len(drones):
+        return float("nan"), 0
+    x, y = x[ok].reshape(-1, x.shape[-1]), y[ok].reshape(-1)
+    residual = y - x @ np.linalg.lstsq(x, y, rcond=None)[0] if x.shape[1] else y
+    return float((residual**2).sum() / (y**2).sum()), steps
 
 
 #: How the fused-track cells are split by the number of drones that predicted the target at
@@ -478,8 +528,12 @@ def replay(
                 drones.append(DroneError(drone_id, mse, int(ok.sum())))
                 if mse < best:  # the fused track at k + 1 on the steps k this drone predicted
                     best, best_i, paired = mse, i, _mse(fused[1:][ok, j], truth[1:][ok, j])
+        temporal, temporal_steps = float("nan"), 0
         if drones:
             oracle = oracle_weighting_mse(errors, seen[:, :, j], best_i)
+            temporal, temporal_steps = temporal_oracle(
+                episode.prediction[:, :, j], truth[1:, j], best_i
+            )
         targets.append(
             TargetReplay(
                 target_id,
@@ -490,6 +544,8 @@ def replay(
                 float(np.isfinite(made.position[:, j, 0]).mean()),
                 _mse(episode.track_position[:, j], truth[:, j]),
                 oracle,
+                temporal,
+                temporal_steps,
             )
         )
     return ReplayResult(
@@ -535,7 +591,7 @@ def format_result(result: ReplayResult) -> str:
     """A markdown table: per target, each drone's prediction MSE beside the fused and label MSE."""
     drone_ids = sorted({d.drone_id for t in result.targets for d in t.drones})
     head = ["target", *(f"drone {i}" for i in drone_ids), "best drone", "fused (filtered)"]
-    head += ["fused, best's steps", "fused / best", "oracle / best"]
+    head += ["fused, best's steps", "fused / best", "oracle / best", "temporal oracle / best"]
     head += [f"{result.labels} label", "label kept"]
     head += ["as flown"]
     lines = [
@@ -558,6 +614,11 @@ def format_result(result: ReplayResult) -> str:
         row = [str(t.target_id), *(by_drone.get(i, "—") for i in drone_ids)]
         row += [f"{t.best_drone_mse:.2f}", f"{t.fused_mse:.2f}", f"{t.fused_mse_paired:.2f}"]
         row += [f"{t.fused_over_best:.2f}x", f"{t.oracle_over_best:.2f}x"]
+        row += [
+            f"{t.temporal_oracle_over_best:.2f}x ({t.temporal_oracle_steps} steps)"
+            if t.temporal_oracle_steps
+            else "—"
+        ]
         row += [f"{t.label_mse:.2f}", f"{100 * t.label_kept:.0f} %", f"{t.recorded_mse:.2f}"]
         lines.append("| " + " | ".join(row) + " |")
     lines += [
@@ -574,7 +635,9 @@ def format_result(result: ReplayResult) -> str:
         + " (0: coasting).",
         "oracle / best: the best fixed weights of the target's drones' predictions, fitted to "
         "the truth afterwards, on the best drone's steps (no fixed-weight fusion of these "
-        "predictions does better).",
+        "predictions does better). temporal oracle / best: the same for the best linear "
+        f"combination of their last {TEMPORAL_TAPS} predictions each (weights summing to 1), "
+        "on the steps where all of them exist.",
     ]
     return "\n".join(lines)
 

@@ -23,6 +23,7 @@ from dronefl.experiments.replay import (
     oracle_weighting_mse,
     replay,
     replay_config,
+    temporal_oracle,
 )
 from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
@@ -403,3 +404,33 @@ def test_a_deployed_episode_replays_with_the_reports_the_cloud_received(tmp_path
     np.savez(tmp_path / "ep" / REPORTS_NAME, noise=noise[:-1])
     with pytest.raises(EpisodeError, match=f"{REPORTS_NAME}: noise has shape"):
         load_episode(tmp_path / "ep")
+
+
+def test_the_temporal_oracle_averages_white_errors_over_its_taps():
+    # Two drones, a parked target, white errors of one variance: the best linear filter of
+    # their last K predictions is their plain mean, MSE sigma^2 / (2K) against the best's
+    # sigma^2 (taps = 1: the fixed-weights oracle, 1/2).
+    rng = np.random.default_rng(3)
+    k = 20_000
+    truth = np.tile([4.0, -2.0], (k, 1))
+    prediction = truth[:, None] + rng.normal(0.0, 0.5, (k, 2, 2))
+    for taps in (1, 5):
+        ratio, steps = temporal_oracle(prediction, truth, best=0, taps=taps)
+        assert steps == k - taps + 1
+        assert ratio == pytest.approx(1 / (2 * taps), rel=0.05)
+    # A moving target and errors that lag it: a static weighting cannot help, the taps can
+    # (extrapolating the predictions' own motion).
+    t = np.arange(k) * DT
+    truth = np.stack([np.sin(0.3 * t) * 20.0, np.cos(0.2 * t) * 10.0], axis=-1)
+    late = np.roll(truth, 1, axis=0)  # each prediction one step behind
+    late[0] = np.nan
+    prediction = np.stack([late, late], axis=1) + rng.normal(0.0, 0.01, (k, 2, 2))
+    prediction[:, 1, :][:100] = np.nan  # drone 2 missing at first: only common steps count
+    fixed, _ = temporal_oracle(prediction, truth, best=0, taps=1)
+    temporal, steps = temporal_oracle(prediction, truth, best=0, taps=3)
+    assert fixed > 0.9 and temporal < 0.05 * fixed and steps == k - 100 - 2
+    # Too few steps: no figure.
+    assert temporal_oracle(prediction[:30], truth[:30], best=0) == (
+        pytest.approx(np.nan, nan_ok=True),
+        0,
+    )
