@@ -182,7 +182,8 @@ class TargetReplay:
     for what a fusion with fixed weights could reach, not an estimator);
     ``temporal_oracle_over_best`` and ``temporal_oracle_steps``: the same for the best linear
     combination of the drones' last :data:`TEMPORAL_TAPS` predictions, against the best drone
-    on the steps where all of them exist (:func:`temporal_oracle`).
+    on the steps where all of them exist, and ``temporal_oracle_overall`` over all the best
+    drone's steps (:func:`temporal_oracle`).
     """
 
     target_id: int
@@ -195,6 +196,7 @@ class TargetReplay:
     oracle_mse_paired: float = float("nan")
     temporal_oracle_over_best: float = float("nan")
     temporal_oracle_steps: int = 0
+    temporal_oracle_overall: float = float("nan")
 
     @property
     def best_drone_mse(self) -> float:
@@ -246,11 +248,22 @@ def oracle_weighting_mse(errors: np.ndarray, seen: np.ndarray, best: int) -> flo
 TEMPORAL_TAPS = 10
 
 
+@dataclass(frozen=True)
+class TemporalOracle:
+    """:func:`temporal_oracle`'s figures for one target: ``ratio`` its MSE over the best
+    drone's on the ``steps`` where every lag exists; ``overall`` the same over all the best
+    drone's steps, the fixed-weights oracle (:func:`oracle_weighting_mse`) on the others."""
+
+    ratio: float
+    steps: int
+    overall: float
+
+
 def temporal_oracle(
     prediction: np.ndarray, truth: np.ndarray, best: int, taps: int = TEMPORAL_TAPS
-) -> tuple[float, int]:
+) -> TemporalOracle:
     r"""The best linear combination of one target's drones' predictions of the last ``taps``
-    steps, fitted to the truth afterwards, against the best drone alone: ``(ratio, steps)``.
+    steps, fitted to the truth afterwards, against the best drone alone.
 
     ``prediction`` ``(K, M, 2)`` m: drone ``i``'s prediction at step ``k`` of the position at
     ``k + 1`` (NaN: none); ``truth`` ``(K, 2)`` m: that position; ``best``: the best drone's
@@ -262,10 +275,12 @@ def temporal_oracle(
 
     (one set of weights for both axes, so it stays unbiased and position-invariant) is fitted
     by least squares; ``ratio`` is its MSE over the best drone's on those ``steps``
-    (``taps = 1``: the fixed-weights oracle of :func:`oracle_weighting_mse` on those steps).
-    Like that oracle it is an optimistic reference, not an estimator: what a linear filter of
-    the same predictions with these taps could reach at best. NaN (and 0 steps) when there
-    are fewer than ``4 taps |D|`` such steps.
+    (``taps = 1``: the fixed-weights oracle of :func:`oracle_weighting_mse` on those steps),
+    ``overall`` over every step the best drone predicted, with the fixed-weights oracle on the
+    steps without every lag (an acceptance counts them all). Like that oracle it is an
+    optimistic reference, not an estimator: what a linear filter of the same predictions with
+    these taps could reach at best. NaN (and 0 steps) when there are fewer than
+    ``4 taps |D|`` such steps.
     """
     drones = [i for i in range(prediction.shape[1]) if np.isfinite(prediction[:, i]).all(-1).any()]
     k = np.arange(taps - 1, len(prediction))
@@ -281,10 +296,20 @@ def temporal_oracle(
     ok = np.isfinite(x).all(axis=(1, 2)) & np.isfinite(y).all(axis=1)
     steps = int(ok.sum())
     if steps < 4 * taps * len(drones):
-        return float("nan"), 0
+        return TemporalOracle(float("nan"), 0, float("nan"))
     x, y = x[ok].reshape(-1, x.shape[-1]), y[ok].reshape(-1)
     residual = y - x @ np.linalg.lstsq(x, y, rcond=None)[0] if x.shape[1] else y
-    return float((residual**2).sum() / (y**2).sum()), steps
+    fitted = float((residual**2).sum())
+    # The best drone's other steps: the fixed weighting of whichever drones predicted there.
+    seen = np.isfinite(prediction).all(axis=-1)  # (K, M)
+    rest = seen[:, best].copy()
+    rest[k[ok]] = False
+    errors = prediction - truth[:, None]
+    own = float((errors[seen[:, best], best] ** 2).sum())
+    fixed = oracle_weighting_mse(errors, seen & rest[:, None], best) * int(rest.sum())
+    return TemporalOracle(
+        float(fitted / (y**2).sum()), steps, (fitted + (fixed if rest.any() else 0.0)) / own
+    )
 
 
 #: How the fused-track cells are split by the number of drones that predicted the target at
@@ -528,12 +553,10 @@ def replay(
                 drones.append(DroneError(drone_id, mse, int(ok.sum())))
                 if mse < best:  # the fused track at k + 1 on the steps k this drone predicted
                     best, best_i, paired = mse, i, _mse(fused[1:][ok, j], truth[1:][ok, j])
-        temporal, temporal_steps = float("nan"), 0
+        temporal = TemporalOracle(float("nan"), 0, float("nan"))
         if drones:
             oracle = oracle_weighting_mse(errors, seen[:, :, j], best_i)
-            temporal, temporal_steps = temporal_oracle(
-                episode.prediction[:, :, j], truth[1:, j], best_i
-            )
+            temporal = temporal_oracle(episode.prediction[:, :, j], truth[1:, j], best_i)
         targets.append(
             TargetReplay(
                 target_id,
@@ -544,8 +567,9 @@ def replay(
                 float(np.isfinite(made.position[:, j, 0]).mean()),
                 _mse(episode.track_position[:, j], truth[:, j]),
                 oracle,
-                temporal,
-                temporal_steps,
+                temporal.ratio,
+                temporal.steps,
+                temporal.overall,
             )
         )
     return ReplayResult(
@@ -615,7 +639,8 @@ def format_result(result: ReplayResult) -> str:
         row += [f"{t.best_drone_mse:.2f}", f"{t.fused_mse:.2f}", f"{t.fused_mse_paired:.2f}"]
         row += [f"{t.fused_over_best:.2f}x", f"{t.oracle_over_best:.2f}x"]
         row += [
-            f"{t.temporal_oracle_over_best:.2f}x ({t.temporal_oracle_steps} steps)"
+            f"{t.temporal_oracle_over_best:.2f}x on {t.temporal_oracle_steps} steps, "
+            f"{t.temporal_oracle_overall:.2f}x on all"
             if t.temporal_oracle_steps
             else "—"
         ]
@@ -637,7 +662,8 @@ def format_result(result: ReplayResult) -> str:
         "the truth afterwards, on the best drone's steps (no fixed-weight fusion of these "
         "predictions does better). temporal oracle / best: the same for the best linear "
         f"combination of their last {TEMPORAL_TAPS} predictions each (weights summing to 1), "
-        "on the steps where all of them exist.",
+        "on the steps where all of them exist, and on all the best drone's steps with the "
+        "fixed weights on the others.",
     ]
     return "\n".join(lines)
 

@@ -415,9 +415,10 @@ def test_the_temporal_oracle_averages_white_errors_over_its_taps():
     truth = np.tile([4.0, -2.0], (k, 1))
     prediction = truth[:, None] + rng.normal(0.0, 0.5, (k, 2, 2))
     for taps in (1, 5):
-        ratio, steps = temporal_oracle(prediction, truth, best=0, taps=taps)
-        assert steps == k - taps + 1
-        assert ratio == pytest.approx(1 / (2 * taps), rel=0.05)
+        oracle = temporal_oracle(prediction, truth, best=0, taps=taps)
+        assert oracle.steps == k - taps + 1
+        assert oracle.ratio == pytest.approx(1 / (2 * taps), rel=0.05)
+        assert oracle.overall == pytest.approx(oracle.ratio, rel=0.01)  # all but taps - 1
     # A moving target and errors that lag it: a static weighting cannot help, the taps can
     # (extrapolating the predictions' own motion).
     t = np.arange(k) * DT
@@ -425,12 +426,14 @@ def test_the_temporal_oracle_averages_white_errors_over_its_taps():
     late = np.roll(truth, 1, axis=0)  # each prediction one step behind
     late[0] = np.nan
     prediction = np.stack([late, late], axis=1) + rng.normal(0.0, 0.01, (k, 2, 2))
-    prediction[:, 1, :][:100] = np.nan  # drone 2 missing at first: only common steps count
-    fixed, _ = temporal_oracle(prediction, truth, best=0, taps=1)
-    temporal, steps = temporal_oracle(prediction, truth, best=0, taps=3)
-    assert fixed > 0.9 and temporal < 0.05 * fixed and steps == k - 100 - 2
+    prediction[:, 1, :][: k // 4] = np.nan  # drone 2 missing for a quarter: only drone 1 there
+    fixed = temporal_oracle(prediction, truth, best=0, taps=1)
+    temporal = temporal_oracle(prediction, truth, best=0, taps=3)
+    assert fixed.ratio > 0.9 and temporal.ratio < 0.05 * fixed.ratio
+    assert temporal.steps == k - k // 4 - 2
+    # Over all of drone 1's steps the quarter without drone 2 counts with drone 1's own error.
+    own = ((late[1:] - truth[1:]) ** 2).sum(-1)
+    assert temporal.overall == pytest.approx(own[: k // 4 + 1].sum() / own.sum(), rel=0.05)
     # Too few steps: no figure.
-    assert temporal_oracle(prediction[:30], truth[:30], best=0) == (
-        pytest.approx(np.nan, nan_ok=True),
-        0,
-    )
+    short = temporal_oracle(prediction[:30], truth[:30], best=0)
+    assert short.steps == 0 and np.isnan(short.ratio) and np.isnan(short.overall)
