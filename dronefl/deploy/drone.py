@@ -252,7 +252,7 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
     print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
     deadline = time.monotonic() + settings.start_timeout
     name = f"supernode-{settings.drone_id}"
-    refused = None  # why the SuperLink turned the last attempt away
+    refused = None  # why the SuperLink turned the attempts away
     pause = 1.0  # s before the next attempt, doubled up to 8 s
     while True:
         supernode = children.start(name, command, env)
@@ -269,7 +269,7 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
             time.sleep(0.2)
         if supernode.process.poll() is None:
             return supernode
-        refused = _refusal(supernode.output())
+        refused = _refusal(supernode.output(), refused)
         if time.monotonic() + pause > deadline:  # the next attempt would start too late
             raise DeployError(
                 f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
@@ -283,11 +283,23 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
         pause = min(2 * pause, 8.0)
 
 
-def _refusal(output: str) -> str:
-    """The line of a SuperNode's output that says why it gave up."""
+#: A SuperNode's line that says the SuperLink turned it away (its key, its certificate).
+_REFUSAL = re.compile(r"activate|refused|denied|unauthori|authenticat|permission", re.I)
+
+
+def _refusal(output: str, earlier: str | None = None) -> str:
+    """The line of a SuperNode's output that says why it gave up: its last refusal line
+    (:data:`_REFUSAL`); else ``earlier``, the reason an earlier attempt gave, when that was
+    a refusal (an attempt that only failed to connect, as on a loaded machine, says less);
+    else its last line that says something failed, or its last line."""
     lines = [ln.strip() for ln in output.splitlines() if ln.strip()]
-    reasons = [ln for ln in lines if re.search(r"failed|refused|denied|unauthori", ln, re.I)]
-    return (reasons or lines or ["(no output)"])[-1]
+    refusals = [ln for ln in lines if _REFUSAL.search(ln)]
+    if refusals:
+        return refusals[-1]
+    if earlier is not None and _REFUSAL.search(earlier):
+        return earlier
+    failures = [ln for ln in lines if re.search(r"failed|error", ln, re.I)]
+    return (failures or lines or ["(no output)"])[-1]
 
 
 def _episode(link: Link, settings: DroneSettings) -> dict:

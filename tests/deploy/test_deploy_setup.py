@@ -10,6 +10,7 @@ from deploy_helpers import MARK, cli, free_port_block, survivors
 
 from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import save_model
+from dronefl.deploy.drone import _refusal
 from dronefl.models.model import build_model, predictor_config
 
 
@@ -128,3 +129,15 @@ def test_certificate_of_another_ca_never_reaches_the_world(tmp_path, run_env, mo
     assert lines[-1].startswith("error: ")
     assert "did not" in lines[-1] and len(lines) == 1
     assert survivors(run_env[MARK]) == []
+
+
+def test_the_supernode_s_refusal_line_beats_a_connection_retry():
+    # On a loaded machine a refused SuperNode may also log connection retries, before or
+    # after the refusal, or an attempt may end on retries alone: the refusal is the reason.
+    refusal = "ERROR :   Failed to activate SuperNode: permission denied"
+    retry = "WARNING :   Connection attempt failed, retrying in 0.84 seconds"
+    assert _refusal(f"{refusal}\n{retry}\n") == refusal
+    assert _refusal(f"{retry}\n{refusal}\n") == refusal
+    assert _refusal(f"{retry}\n", earlier=refusal) == refusal
+    assert _refusal(f"{retry}\n", earlier=None) == retry
+    assert _refusal("", earlier=None) == "(no output)"
