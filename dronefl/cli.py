@@ -715,7 +715,7 @@ RandomWalkTrackPsdOption = Annotated[
     typer.Option(
         "--random-walk-track-psd",
         help="As --track-psd, for a scenario with random-walk targets only (Case 2; Cases 1 "
-        "and 3 keep one filter): 10 (recommended, chosen on tuning seeds) | unset: one filter.",
+        "and 3 keep one filter): 30 (recommended, chosen on tuning seeds) | unset: one filter.",
     ),
 ]
 EpochsOption = Annotated[

@@ -282,7 +282,8 @@ def temporal_oracle(
     these taps could reach at best. NaN (and 0 steps) when there are fewer than
     ``4 taps |D|`` such steps.
     """
-    drones = [i for i in range(prediction.shape[1]) if np.isfinite(prediction[:, i]).all(-1).any()]
+    seen = np.isfinite(prediction).all(axis=-1)  # (K, M)
+    drones = np.flatnonzero(seen.any(axis=0)).tolist()
     k = np.arange(taps - 1, len(prediction))
     z_best = prediction[k, best]
     columns = [
@@ -301,7 +302,6 @@ def temporal_oracle(
     residual = y - x @ np.linalg.lstsq(x, y, rcond=None)[0] if x.shape[1] else y
     fitted = float((residual**2).sum())
     # The best drone's other steps: the fixed weighting of whichever drones predicted there.
-    seen = np.isfinite(prediction).all(axis=-1)  # (K, M)
     rest = seen[:, best].copy()
     rest[k[ok]] = False
     errors = prediction - truth[:, None]
