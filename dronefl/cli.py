@@ -676,6 +676,15 @@ DetectedOnlyOption = Annotated[
         "(it still predicts the others; they count in the prediction error).",
     ),
 ]
+CoverageNoiseOption = Annotated[
+    bool | None,
+    typer.Option(
+        "--coverage-noise/--no-coverage-noise",
+        help="The fusion scales R of a prediction made from a window with few detections (the "
+        "drone sent that target on n of the last 10 steps) by the measured profile "
+        "(COVERAGE_NOISE_PROFILE: ~9.5x for n <= 5, 2.2x for n = 9).",
+    ),
+]
 NetReportsOption = Annotated[
     bool,
     typer.Option(
@@ -802,6 +811,7 @@ def track(
     noise_split: NoiseSplitOption = None,
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
+    coverage_noise: CoverageNoiseOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
@@ -855,6 +865,7 @@ def track(
             planner_distance=planner_distance,
             constant_speed_psd=constant_speed_psd,
             random_walk_track_psd=random_walk_track_psd,
+            coverage_noise=coverage_noise,
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -925,6 +936,7 @@ def table1(
     noise_split: NoiseSplitOption = None,
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
+    coverage_noise: CoverageNoiseOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
@@ -969,6 +981,7 @@ def table1(
             epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
             detected_only=detected_only, planner_distance=planner_distance,
             constant_speed_psd=constant_speed_psd, random_walk_track_psd=random_walk_track_psd,
+            coverage_noise=coverage_noise,
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1086,6 +1099,15 @@ def replay(
             "rebuilt from the episode's checkpoint.pkl)."
         ),
     ] = "adaptive",
+    coverage_noise: Annotated[
+        bool,
+        typer.Option(
+            "--coverage-noise/--no-coverage-noise",
+            help="Scale R of a prediction made from a window with few detections by "
+            "COVERAGE_NOISE_PROFILE (robust; the drone's sends of that target in the last 10 "
+            "steps), as `track --coverage-noise`.",
+        ),
+    ] = False,
     correct_bias: Annotated[
         bool,
         typer.Option(
@@ -1138,6 +1160,7 @@ def replay(
         write_result,
     )
     from dronefl.experiments.replay import replay as run
+    from dronefl.tracking.fusion import COVERAGE_NOISE_PROFILE
 
     fusion = {
         "method": method,
@@ -1150,6 +1173,7 @@ def replay(
         "error_autocorrelation": error_autocorrelation,
         "fading": fading,
         "noise_split": noise_split,
+        "coverage_noise": COVERAGE_NOISE_PROFILE if coverage_noise else None,
     }
     try:
         recorded = load_episode(episode)
@@ -1343,6 +1367,14 @@ def cloud(
     planner_distance: PlannerDistanceOption = "next",
     constant_speed_psd: ConstantSpeedPsdOption = None,
     track_psd: TrackPsdOption = None,
+    coverage_noise: Annotated[
+        bool,
+        typer.Option(
+            "--coverage-noise",
+            help="Scale R of a prediction made from a window with few detections (as `track "
+            "--coverage-noise`).",
+        ),
+    ] = False,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1386,6 +1418,7 @@ def cloud(
             planner_distance=planner_distance,
             constant_speed_psd=constant_speed_q(constant_speed_psd),
             track_psd=track_psd,
+            coverage_noise=coverage_noise,
         )
         fl = closed_loop_settings(
             preset,
@@ -1435,6 +1468,7 @@ def deploy_up(
     noise_split: NoiseSplitOption = None,
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
+    coverage_noise: CoverageNoiseOption = None,
     net_reports: NetReportsOption = False,
     planner_distance: PlannerDistanceOption = None,
     constant_speed_psd: ConstantSpeedPsdOption = None,
@@ -1456,7 +1490,7 @@ def deploy_up(
         setting, preset=preset, label_drones=label_drones, epochs=epochs,
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
         planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
-        random_walk_track_psd=random_walk_track_psd,
+        random_walk_track_psd=random_walk_track_psd, coverage_noise=coverage_noise,
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

@@ -61,6 +61,7 @@ from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
 from dronefl.tracking.fusion import (
     CONSTANT_SPEED_PSD,
+    COVERAGE_NOISE_PROFILE,
     NOISE_SPLITS,
     check_track_psd,
     constant_speed_q,
@@ -109,7 +110,8 @@ class CloudSettings:
     constant-speed targets, m^2/s^3 (as ``dronefl track --constant-speed-psd``); ``track_psd``
     the q of a second filter whose tracks the planner flies on, the labels smoothed from the
     fusion's own (as ``dronefl track --track-psd``; ``None``: one filter; ``deploy up`` passes
-    the q its setting resolves to for the scenario).
+    the q its setting resolves to for the scenario); ``coverage_noise``: scale ``R`` of a
+    prediction made from a window with few detections (as ``dronefl track --coverage-noise``).
     """
 
     scenario: str
@@ -132,6 +134,7 @@ class CloudSettings:
     planner_distance: str = "next"
     constant_speed_psd: float = CONSTANT_SPEED_PSD
     track_psd: float | None = None
+    coverage_noise: bool = False
 
     def __post_init__(self) -> None:
         constant_speed_q(self.constant_speed_psd)
@@ -218,6 +221,7 @@ class CloudEpisode:
         fusion = replace(
             fusion_config(s, constant_speed_psd=settings.constant_speed_psd),
             noise_split=settings.noise_split,
+            coverage_noise=COVERAGE_NOISE_PROFILE if settings.coverage_noise else None,
         )
         # The planner's tracks; with a q of their own the labels have a filter of their own.
         self.fusion = fusion

@@ -70,6 +70,7 @@ class DeployConfig:
     noise_split: str = "adaptive"
     correct_bias: bool = False
     detected_only: bool = False
+    coverage_noise: bool = False
     net_reports: bool = False
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
@@ -228,6 +229,7 @@ def _commands(
                 else []
             ),
             *(["--track-psd", repr(track_psd)] if track_psd is not None else []),
+            *(["--coverage-noise"] if config.coverage_noise else []),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

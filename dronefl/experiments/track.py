@@ -82,6 +82,7 @@ from dronefl.tracking import (
     set_distances,
 )
 from dronefl.tracking.fusion import (
+    COVERAGE_NOISE_PROFILE,
     NOISE_SPLITS,
     TUNED_CONSTANT_SPEED_PSD,
     constant_speed_q,
@@ -155,12 +156,14 @@ RECOMMENDED: dict[str, str | int | float | bool] = {
     "planner_distance": "rest",
     "constant_speed_psd": TUNED_CONSTANT_SPEED_PSD,
     "random_walk_track_psd": TUNED_RANDOM_WALK_TRACK_PSD,
+    "coverage_noise": False,
 }
 
 #: The :class:`TrackConfig` fields a named setting (``--setting``) fills in.
 SETTING_FIELDS: tuple[str, ...] = (
     "preset", "labels", "fusion", "label_drones", "epochs", "noise_split", "correct_bias",
     "detected_only", "planner_distance", "constant_speed_psd", "random_walk_track_psd",
+    "coverage_noise",
 )  # fmt: skip
 #: Named closed-loop settings (``track``/``table1``/``deploy up --setting``), every field of
 #: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's; ``constant_speed_psd`` ``None``: the
@@ -176,11 +179,13 @@ SETTINGS: dict[str, dict[str, str | int | float | bool | None]] = {
         "preset": "ours", "labels": "smoothed", "fusion": "robust", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
+        "coverage_noise": False,
     },
     "paper": {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
+        "coverage_noise": False,
     },
 }  # fmt: skip
 
@@ -237,7 +242,9 @@ class TrackConfig:
     distance_at`: ``next``, the paper's next position, or ``rest``, its rest point under full
     braking); ``constant_speed_psd`` (m^2/s^3) the fusion's process noise q for constant-speed
     targets (:func:`~dronefl.tracking.fusion_config`; ``None``: its default; random-walk
-    targets keep theirs);
+    targets keep theirs); ``coverage_noise``: the fusion scales ``R`` of a prediction its drone
+    made from a window with few detections (:attr:`~dronefl.tracking.FusionConfig.
+    coverage_noise`, :data:`~dronefl.tracking.fusion.COVERAGE_NOISE_PROFILE`);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -271,6 +278,7 @@ class TrackConfig:
     random_walk_track_psd: float | None = None
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
+    coverage_noise: bool = False
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -299,6 +307,8 @@ class TrackConfig:
             raise ValueError("--noise-split reported: needs --fusion robust")
         if self.net_reports and self.noise_split != "reported":
             raise ValueError("--net-reports: needs --noise-split reported")
+        if self.coverage_noise and self.fusion != "robust":
+            raise ValueError("--coverage-noise: needs --fusion robust")
         planner_track_psd(self.scenario, self.track_psd, self.random_walk_track_psd)
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
@@ -368,15 +378,18 @@ class TrackConfig:
         if self.planner_distance == "next":  # as every episode flown before the option (12-05)
             del values["planner_distance"]
         del values["constant_speed_psd"]  # in fusion_config where it applies, not elsewhere
+        del values["coverage_noise"]  # in fusion_config
         values["fusion_config"] = fusion_record(self.fusion_config())
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
     def fusion_config(self) -> FusionConfig:
         """The cloud fusion's settings: the closed loop's for the scenario, ``fusion`` method
         and ``constant_speed_psd`` (:func:`~dronefl.tracking.fusion_config`) with
-        ``noise_split``."""
+        ``noise_split`` and, with ``coverage_noise``, :data:`~dronefl.tracking.fusion.
+        COVERAGE_NOISE_PROFILE`."""
         config = fusion_config(self.scenario, self.fusion, self.constant_speed_psd)
-        return dataclasses.replace(config, noise_split=self.noise_split)
+        coverage = COVERAGE_NOISE_PROFILE if self.coverage_noise else None
+        return dataclasses.replace(config, noise_split=self.noise_split, coverage_noise=coverage)
 
     def track_fusion_config(self) -> FusionConfig:
         """The settings of the filter whose tracks the planner flies on: :meth:`fusion_config`

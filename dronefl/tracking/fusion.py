@@ -37,6 +37,14 @@ if TYPE_CHECKING:
 NOISE_SPLITS: tuple[str, ...] = ("adaptive", "reported")
 #: The target motion models by name (:attr:`FusionConfig.motion`).
 MOTIONS: tuple[str, ...] = ("constant_velocity", "mean_reverting", "coordinated_turn")
+#: :attr:`FusionConfig.coverage_noise` as measured: entry ``n - 1`` is the MSE of a fixed
+#: model's sent prediction made when its drone sent that target on ``n`` of the last 10 steps
+#: (its L_p = 10 window held ``n`` detections), over that of one made from a full window
+#: (orchard, Case 2, tuning seeds 10-13, 80,000 sends; made non-increasing by isotonic
+#: regression). Case 3's tuning seeds 10-11 give the same shape (n = 9: 4.6, n <= 8: 8-11).
+COVERAGE_NOISE_PROFILE: tuple[float, ...] = (
+    9.55, 9.55, 9.55, 9.55, 9.52, 7.75, 5.22, 3.47, 2.21, 1.0,
+)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -74,7 +82,10 @@ class FusionConfig:
     adapted ``R`` of two or more drones on one target is shared between them, ``adaptive``
     (as it adapts) or ``reported`` (their total kept, shared in proportion to the noise the
     drones report with their predictions, :mod:`dronefl.tracking.reports`; targets whose
-    drones did not all report keep ``adaptive``).
+    drones did not all report keep ``adaptive``); ``coverage_noise`` ``(s_1, ..., s_L)``: the
+    factor on ``R`` of a measurement whose pair sent one in ``n`` of the last ``L`` updates
+    (``s_n``; :data:`COVERAGE_NOISE_PROFILE`), as a drone predicting from a window with few
+    detections errs more, ``None`` (default) the same ``R`` for every measurement.
     """
 
     method: str = "robust"
@@ -95,6 +106,7 @@ class FusionConfig:
     fading: bool = True
     noise_estimate: str = "consensus"
     noise_split: Literal["adaptive", "reported"] = "adaptive"
+    coverage_noise: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.method not in FUSION_METHODS:
@@ -132,6 +144,17 @@ class FusionConfig:
             )
         if self.noise_split == "reported" and self.method != "robust":
             raise ValueError("noise_split: 'reported' needs the robust fusion method")
+        if self.coverage_noise is not None:
+            scales = tuple(self.coverage_noise)  # a list when read back from JSON
+            if not scales or not all(
+                isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in scales
+            ):
+                raise ValueError(
+                    f"coverage_noise: must be positive finite factors, got {self.coverage_noise!r}"
+                )
+            if self.method != "robust":
+                raise ValueError("coverage_noise: needs the robust fusion method")
+            object.__setattr__(self, "coverage_noise", tuple(float(v) for v in scales))
         for name in ("gate", "consensus_gate"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -267,9 +290,11 @@ class Fuser:
     ``target_ids`` / ``drone_ids``: the scenario's ids; ``config``: :class:`FusionConfig`;
     ``initial_positions``: optional ``{target_id: (2,)}`` m to start tracks at ``t0`` (with
     position std ``initial_noise_std``); other targets get a track at their first measurement
-    (the mean of that step's positions). Counters: :attr:`rejections` (gated-out measurements),
-    :attr:`measurements` (all fused or gated ones), :attr:`resets` (tracks re-initialised after
-    ``reset_after`` all-rejected updates), :attr:`dropped` (non-finite measurements ignored).
+    (the mean of that step's positions). With :attr:`FusionConfig.coverage_noise` it counts,
+    per pair, the updates among the last ``L`` that carried its measurement. Counters:
+    :attr:`rejections` (gated-out measurements), :attr:`measurements` (all fused or gated
+    ones), :attr:`resets` (tracks re-initialised after ``reset_after`` all-rejected updates),
+    :attr:`dropped` (non-finite measurements ignored).
 
     With ``record`` (default) every update's prior, transition and posterior are kept, so that
     :meth:`history` and :meth:`smooth` can give the RTS-smoothed tracks of the whole past at
@@ -308,6 +333,10 @@ class Fuser:
         self._last: dict[int, tuple[int, int]] = {}
         self._history: list[list[tuple]] = [[] for _ in self.target_ids]
         self._pending: dict[int, tuple] = {}  # this update's (t, prior mean, prior cov, F)
+        coverage = self.config.coverage_noise
+        self._coverage = None if coverage is None else np.asarray(coverage)
+        # which of the last L updates carried each pair's measurement, newest first, (L, D, T)
+        self._sent = np.zeros((len(coverage or ()), len(self.drone_ids), n_targets), dtype=bool)
         self.rejections = 0
         self.measurements = 0
         self.resets = 0
@@ -329,6 +358,7 @@ class Fuser:
 
     def __setstate__(self, state: dict) -> None:
         """Unpickle, back to rows (also a Fuser pickled with rows, before 2026-12-06)."""
+        state.setdefault("_coverage", None)  # pickled before coverage_noise (2026-12-06)
         self.__dict__.update(state)
         self._history = [
             rows if isinstance(rows, list) else _history_rows(rows) for rows in self._history
@@ -370,13 +400,17 @@ class Fuser:
         if not t >= self.t:
             raise ValueError(f"update time {t} s is before the last update at {self.t} s")
         batch = self._group(measurements)
+        if self._coverage is not None:
+            batch = self._scaled(batch)
         self._predict(t - self.t)
         self.t = float(t)
         self._last = {}
         tracked = self._alive[batch.targets]  # (G,)
         for g in (~tracked).nonzero()[0]:
             rows = batch.rows(g)
-            self._birth(int(batch.targets[g]), batch.drone[rows], batch.position[rows])
+            self._birth(
+                int(batch.targets[g]), batch.drone[rows], batch.position[rows], batch.scale[rows]
+            )
         if tracked.any():
             self._fuse(batch if tracked.all() else batch.select(tracked))
         if self.record:
@@ -440,10 +474,21 @@ class Fuser:
             index, positions, reported = index[finite], positions[finite], reported[finite]
         return MeasurementBatch.of(index[:, 1], index[:, 0], positions, reported)
 
-    def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
+    def _scaled(self, batch: MeasurementBatch) -> MeasurementBatch:
+        """``batch`` with each row's factor ``s_n`` of :attr:`FusionConfig.coverage_noise`,
+        ``n`` the updates among the last ``L`` (this one included) with its pair's
+        measurement."""
+        self._sent[1:] = self._sent[:-1].copy()
+        self._sent[0] = False
+        self._sent[0, batch.drone, batch.target] = True
+        n = self._sent[:, batch.drone, batch.target].sum(axis=0)
+        return replace(batch, scale=self._coverage[n - 1])
+
+    def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray, scale: np.ndarray) -> None:
         """Start (or restart) target ``j``'s track at the mean of ``positions``; its
-        covariance is that of the mean of independent measurements, ``(sum_i R_ij^-1)^-1``."""
-        noise = self.method.noise()[drones, j]
+        covariance is that of the mean of independent measurements, ``(sum_i s_i
+        R_ij^-1)^-1`` (``scale`` ``s_i``: :attr:`MeasurementBatch.scale`)."""
+        noise = self.method.noise()[drones, j] * scale[:, None, None]
         info = np.linalg.inv(noise).sum(axis=0)
         self._start(j, positions.mean(axis=0), np.linalg.inv(info), len(drones))
         self._last[self.target_ids[j]] = (len(drones), 0)
@@ -468,7 +513,7 @@ class Fuser:
             if reset_after is not None and self._misses[k] >= reset_after:
                 self.resets += 1
                 rows = batch.rows(g)
-                self._birth(k, batch.drone[rows], batch.position[rows])
+                self._birth(k, batch.drone[rows], batch.position[rows], batch.scale[rows])
                 self._last[target_id] = (0, n_rejected)
             elif self.record:  # result's rows are fresh arrays, kept as they are
                 row = (result.mean[g], result.covariance[g], n_accepted)
@@ -657,10 +702,13 @@ def fusion_config(
 def fusion_record(config: FusionConfig) -> str:
     """``config`` as an episode's ``metrics.json`` records it (``fusion_config``, read back by
     ``dronefl replay --as-flown``): JSON of every field, keys sorted, without ``noise_split``
-    when it is ``adaptive`` (as every episode flown before that field existed records it)."""
+    when it is ``adaptive`` and ``coverage_noise`` when it is ``None`` (as every episode flown
+    before those fields existed records them)."""
     fields = asdict(config)
     if fields["noise_split"] == "adaptive":
         del fields["noise_split"]
+    if fields["coverage_noise"] is None:  # as every episode flown before it (2026-12-06)
+        del fields["coverage_noise"]
     return json.dumps(fields, sort_keys=True)
 
 

@@ -173,6 +173,12 @@ def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
     with pytest.raises(ValueError, match="--planner-distance"):
         DeployConfig(scenario="case2", out=tmp_path, planner_distance="later")
     assert "--constant-speed-psd" not in cloud  # not given: the cloud's default
+    assert "--coverage-noise" not in cloud
+    config = DeployConfig(scenario="case2", out=tmp_path, coverage_noise=True)
+    assert (
+        "--coverage-noise"
+        in _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
+    )  # the cloud fuses
     config = DeployConfig(scenario="case3", out=tmp_path, constant_speed_psd=1e-3)
     cloud = _commands(config, load_scenario("case3"), tmp_path / "m.npz", None, tmp_path)["cloud"]
     assert float(cloud[cloud.index("--constant-speed-psd") + 1]) == 1e-3  # the cloud fuses

@@ -27,6 +27,7 @@ def test_every_setting_names_every_field_and_ours_is_the_config_defaults():
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
+        "coverage_noise": False,
     }  # fmt: skip
 
 
@@ -131,3 +132,23 @@ def test_the_planners_own_filter_is_for_random_walk_targets_only(tmp_path):
         assert given == expected, case
     with pytest.raises(ValueError, match="--random-walk-track-psd"):
         DeployConfig(scenario="case2", out=tmp_path, random_walk_track_psd=0.0)
+
+
+def test_coverage_noise_reaches_the_fusion_and_is_recorded_only_when_set(captured, tmp_path):
+    from dronefl.config import load_scenario
+    from dronefl.tracking.fusion import COVERAGE_NOISE_PROFILE
+
+    _run("track", "--coverage-noise", "--out", str(tmp_path / "o"),
+         "--pretrained", str(tmp_path / "cache"))  # fmt: skip
+
+    (config,) = captured
+    assert config.fusion_config().coverage_noise == COVERAGE_NOISE_PROFILE
+    assert config.track_fusion_config().coverage_noise == COVERAGE_NOISE_PROFILE
+    assert "coverage_noise" in config.describe()["fusion_config"]
+    off = replace(config, coverage_noise=False)
+    assert off.fusion_config().coverage_noise is None
+    assert "coverage_noise" not in off.describe()["fusion_config"]  # as flown before it
+    with pytest.raises(ValueError, match="--coverage-noise: needs --fusion robust"):
+        TrackConfig(
+            scenario=load_scenario("case2"), out=tmp_path, fusion="paper", coverage_noise=True
+        )
