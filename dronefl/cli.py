@@ -685,6 +685,15 @@ CoverageNoiseOption = Annotated[
         "(COVERAGE_NOISE_PROFILE: ~9.5x for n <= 5, 2.2x for n = 9).",
     ),
 ]
+TemporalKernelOption = Annotated[
+    bool | None,
+    typer.Option(
+        "--temporal-kernel/--no-temporal-kernel",
+        help="With random-walk targets: the fused tracks the planner flies on are a 5-tap "
+        "kernel over the drones' last predictions (TEMPORAL_KERNEL, fitted in the crop "
+        "field); the labels unchanged.",
+    ),
+]
 NetReportsOption = Annotated[
     bool,
     typer.Option(
@@ -812,6 +821,7 @@ def track(
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
     coverage_noise: CoverageNoiseOption = None,
+    temporal_kernel: TemporalKernelOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
@@ -866,6 +876,7 @@ def track(
             constant_speed_psd=constant_speed_psd,
             random_walk_track_psd=random_walk_track_psd,
             coverage_noise=coverage_noise,
+            temporal_kernel=temporal_kernel,
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -937,6 +948,7 @@ def table1(
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
     coverage_noise: CoverageNoiseOption = None,
+    temporal_kernel: TemporalKernelOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
@@ -982,6 +994,7 @@ def table1(
             detected_only=detected_only, planner_distance=planner_distance,
             constant_speed_psd=constant_speed_psd, random_walk_track_psd=random_walk_track_psd,
             coverage_noise=coverage_noise,
+            temporal_kernel=temporal_kernel,
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1108,6 +1121,14 @@ def replay(
             "steps), as `track --coverage-noise`.",
         ),
     ] = False,
+    temporal_kernel: Annotated[
+        bool,
+        typer.Option(
+            "--temporal-kernel/--no-temporal-kernel",
+            help="The fused tracks a kernel over the drones' last predictions (TEMPORAL_KERNEL; "
+            "robust or paper), as `track --temporal-kernel`.",
+        ),
+    ] = False,
     correct_bias: Annotated[
         bool,
         typer.Option(
@@ -1160,7 +1181,7 @@ def replay(
         write_result,
     )
     from dronefl.experiments.replay import replay as run
-    from dronefl.tracking.fusion import COVERAGE_NOISE_PROFILE
+    from dronefl.tracking.fusion import COVERAGE_NOISE_PROFILE, TEMPORAL_KERNEL
 
     fusion = {
         "method": method,
@@ -1174,6 +1195,7 @@ def replay(
         "fading": fading,
         "noise_split": noise_split,
         "coverage_noise": COVERAGE_NOISE_PROFILE if coverage_noise else None,
+        "temporal_kernel": TEMPORAL_KERNEL if temporal_kernel else None,
     }
     try:
         recorded = load_episode(episode)
@@ -1375,6 +1397,14 @@ def cloud(
             "--coverage-noise`).",
         ),
     ] = False,
+    temporal_kernel: Annotated[
+        bool,
+        typer.Option(
+            "--temporal-kernel",
+            help="The planner's tracks a kernel over the drones' last predictions (as `track "
+            "--temporal-kernel`; `deploy up` gives it for random-walk targets only).",
+        ),
+    ] = False,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -1419,6 +1449,7 @@ def cloud(
             constant_speed_psd=constant_speed_q(constant_speed_psd),
             track_psd=track_psd,
             coverage_noise=coverage_noise,
+            temporal_kernel=temporal_kernel,
         )
         fl = closed_loop_settings(
             preset,
@@ -1469,6 +1500,7 @@ def deploy_up(
     correct_bias: CorrectBiasOption = None,
     detected_only: DetectedOnlyOption = None,
     coverage_noise: CoverageNoiseOption = None,
+    temporal_kernel: TemporalKernelOption = None,
     net_reports: NetReportsOption = False,
     planner_distance: PlannerDistanceOption = None,
     constant_speed_psd: ConstantSpeedPsdOption = None,
@@ -1491,6 +1523,7 @@ def deploy_up(
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
         planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
         random_walk_track_psd=random_walk_track_psd, coverage_noise=coverage_noise,
+        temporal_kernel=temporal_kernel,
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

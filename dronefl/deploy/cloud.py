@@ -63,6 +63,7 @@ from dronefl.tracking.fusion import (
     CONSTANT_SPEED_PSD,
     COVERAGE_NOISE_PROFILE,
     NOISE_SPLITS,
+    TEMPORAL_KERNEL,
     check_track_psd,
     constant_speed_q,
     fusion_record,
@@ -111,7 +112,9 @@ class CloudSettings:
     the q of a second filter whose tracks the planner flies on, the labels smoothed from the
     fusion's own (as ``dronefl track --track-psd``; ``None``: one filter; ``deploy up`` passes
     the q its setting resolves to for the scenario); ``coverage_noise``: scale ``R`` of a
-    prediction made from a window with few detections (as ``dronefl track --coverage-noise``).
+    prediction made from a window with few detections (as ``dronefl track --coverage-noise``);
+    ``temporal_kernel``: the tracks the planner flies on are the temporal kernel's (as
+    ``dronefl track --temporal-kernel``).
     """
 
     scenario: str
@@ -135,6 +138,7 @@ class CloudSettings:
     constant_speed_psd: float = CONSTANT_SPEED_PSD
     track_psd: float | None = None
     coverage_noise: bool = False
+    temporal_kernel: bool = False
 
     def __post_init__(self) -> None:
         constant_speed_q(self.constant_speed_psd)
@@ -222,6 +226,7 @@ class CloudEpisode:
             fusion_config(s, constant_speed_psd=settings.constant_speed_psd),
             noise_split=settings.noise_split,
             coverage_noise=COVERAGE_NOISE_PROFILE if settings.coverage_noise else None,
+            temporal_kernel=TEMPORAL_KERNEL if settings.temporal_kernel else None,
         )
         # The planner's tracks; with a q of their own the labels have a filter of their own.
         self.fusion = fusion

@@ -35,6 +35,7 @@ from dronefl.tracking.fusion import (
     NOISE_SPLITS,
     check_track_psd,
     constant_speed_q,
+    has_random_walk,
     planner_track_psd,
 )
 from dronefl.tracking.labels import LABEL_DRONES
@@ -71,6 +72,7 @@ class DeployConfig:
     correct_bias: bool = False
     detected_only: bool = False
     coverage_noise: bool = False
+    temporal_kernel: bool = False
     net_reports: bool = False
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
@@ -205,6 +207,7 @@ def _commands(
     superlink = f"{HOST}:{ports['SuperLink']}"
     tls = ["--tls-dir", str(certs.folder)] if certs else []
     track_psd = planner_track_psd(scenario, None, config.random_walk_track_psd)  # the cloud's
+    kernel = config.temporal_kernel and has_random_walk(scenario)  # as `track`'s
     base = [sys.executable, "-m", "dronefl.cli"]
     common = ["--scenario", config.scenario, "--start-timeout", str(config.start_timeout), *tls]
     commands = {
@@ -230,6 +233,7 @@ def _commands(
             ),
             *(["--track-psd", repr(track_psd)] if track_psd is not None else []),
             *(["--coverage-noise"] if config.coverage_noise else []),
+            *(["--temporal-kernel"] if kernel else []),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,

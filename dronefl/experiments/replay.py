@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import pickle
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -310,6 +311,37 @@ def temporal_oracle(
     return TemporalOracle(
         float(fitted / (y**2).sum()), steps, (fitted + (fixed if rest.any() else 0.0)) / own
     )
+
+
+def fit_temporal_kernel(episodes: Sequence[Episode], taps: int) -> tuple[float, ...]:
+    r"""The kernel of :attr:`~dronefl.tracking.FusionConfig.temporal_kernel` that fits
+    ``episodes`` best: weights ``w_0, ..., w_{taps-1}`` summing to 1 that minimise
+
+    .. math::
+        \sum_{k, j} \lVert x_j(k + 1) - \sum_l w_l \bar z_j(k - l) \rVert^2
+
+    over every step ``k`` and target ``j`` where some drone sent ``j`` at each of ``k, ...,
+    k - taps + 1``; ``\bar z_j`` is the plain mean of those drones' sent predictions
+    (:func:`sent_predictions`), ``x_j`` the truth (the episodes are where it is known, e.g.
+    the crop-field pretraining's). ``ValueError`` when fewer than ``100 taps`` such steps
+    exist or ``taps < 1``."""
+    if taps < 1:
+        raise ValueError(f"taps: must be >= 1, got {taps}")
+    x, y = [], []
+    for episode in episodes:
+        z = sent_predictions(episode)  # (K, M, N, 2)
+        truth = episode.target_position[1:]
+        seen = np.isfinite(z).all(axis=-1)  # (K, M, N)
+        for k in range(taps - 1, len(z)):
+            full = seen[k - taps + 1 : k + 1].all(axis=0)  # (M, N)
+            for j in full.any(axis=0).nonzero()[0]:
+                lagged = z[k - np.arange(taps)][:, full[:, j], j].mean(axis=1)  # (taps, 2)
+                x.append((lagged[1:] - lagged[:1]).T)  # sum w = 1: w_0 takes the rest
+                y.append(truth[k, j] - lagged[0])
+    if len(y) < 100 * taps:
+        raise ValueError(f"fit_temporal_kernel: {len(y)} steps with {taps} lags, too few")
+    rest = np.linalg.lstsq(np.concatenate(x), np.concatenate(y), rcond=None)[0]
+    return (1.0 - float(rest.sum()), *(float(w) for w in rest))
 
 
 #: How the fused-track cells are split by the number of drones that predicted the target at

@@ -84,9 +84,11 @@ from dronefl.tracking import (
 from dronefl.tracking.fusion import (
     COVERAGE_NOISE_PROFILE,
     NOISE_SPLITS,
+    TEMPORAL_KERNEL,
     TUNED_CONSTANT_SPEED_PSD,
     constant_speed_q,
     fusion_record,
+    has_random_walk,
     planner_filter_config,
     planner_forecast,
     planner_track_psd,
@@ -157,13 +159,14 @@ RECOMMENDED: dict[str, str | int | float | bool] = {
     "constant_speed_psd": TUNED_CONSTANT_SPEED_PSD,
     "random_walk_track_psd": TUNED_RANDOM_WALK_TRACK_PSD,
     "coverage_noise": False,
+    "temporal_kernel": False,
 }
 
 #: The :class:`TrackConfig` fields a named setting (``--setting``) fills in.
 SETTING_FIELDS: tuple[str, ...] = (
     "preset", "labels", "fusion", "label_drones", "epochs", "noise_split", "correct_bias",
     "detected_only", "planner_distance", "constant_speed_psd", "random_walk_track_psd",
-    "coverage_noise",
+    "coverage_noise", "temporal_kernel",
 )  # fmt: skip
 #: Named closed-loop settings (``track``/``table1``/``deploy up --setting``), every field of
 #: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's; ``constant_speed_psd`` ``None``: the
@@ -179,13 +182,13 @@ SETTINGS: dict[str, dict[str, str | int | float | bool | None]] = {
         "preset": "ours", "labels": "smoothed", "fusion": "robust", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False,
+        "coverage_noise": False, "temporal_kernel": False,
     },
     "paper": {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False,
+        "coverage_noise": False, "temporal_kernel": False,
     },
 }  # fmt: skip
 
@@ -244,7 +247,11 @@ class TrackConfig:
     targets (:func:`~dronefl.tracking.fusion_config`; ``None``: its default; random-walk
     targets keep theirs); ``coverage_noise``: the fusion scales ``R`` of a prediction its drone
     made from a window with few detections (:attr:`~dronefl.tracking.FusionConfig.
-    coverage_noise`, :data:`~dronefl.tracking.fusion.COVERAGE_NOISE_PROFILE`);
+    coverage_noise`, :data:`~dronefl.tracking.fusion.COVERAGE_NOISE_PROFILE`); ``temporal_kernel``:
+    in a scenario with random-walk targets, the tracks the fusion outputs (the planner's, the
+    log's) are a short kernel over the drones' last predictions (:attr:`~dronefl.tracking.
+    FusionConfig.temporal_kernel`, :data:`~dronefl.tracking.fusion.TEMPORAL_KERNEL`; the
+    labels unchanged);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -279,6 +286,7 @@ class TrackConfig:
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
     coverage_noise: bool = False
+    temporal_kernel: bool = False
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -379,17 +387,26 @@ class TrackConfig:
             del values["planner_distance"]
         del values["constant_speed_psd"]  # in fusion_config where it applies, not elsewhere
         del values["coverage_noise"]  # in fusion_config
+        del values["temporal_kernel"]  # in fusion_config where it applies
         values["fusion_config"] = fusion_record(self.fusion_config())
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
     def fusion_config(self) -> FusionConfig:
         """The cloud fusion's settings: the closed loop's for the scenario, ``fusion`` method
         and ``constant_speed_psd`` (:func:`~dronefl.tracking.fusion_config`) with
-        ``noise_split`` and, with ``coverage_noise``, :data:`~dronefl.tracking.fusion.
-        COVERAGE_NOISE_PROFILE`."""
+        ``noise_split``, with ``coverage_noise`` :data:`~dronefl.tracking.fusion.
+        COVERAGE_NOISE_PROFILE` and with ``temporal_kernel``, in a scenario with random-walk
+        targets (the kernel was fitted on such), :data:`~dronefl.tracking.fusion.
+        TEMPORAL_KERNEL`."""
         config = fusion_config(self.scenario, self.fusion, self.constant_speed_psd)
         coverage = COVERAGE_NOISE_PROFILE if self.coverage_noise else None
-        return dataclasses.replace(config, noise_split=self.noise_split, coverage_noise=coverage)
+        kernel = self.temporal_kernel and has_random_walk(self.scenario)
+        return dataclasses.replace(
+            config,
+            noise_split=self.noise_split,
+            coverage_noise=coverage,
+            temporal_kernel=TEMPORAL_KERNEL if kernel else None,
+        )
 
     def track_fusion_config(self) -> FusionConfig:
         """The settings of the filter whose tracks the planner flies on: :meth:`fusion_config`

@@ -45,6 +45,14 @@ MOTIONS: tuple[str, ...] = ("constant_velocity", "mean_reverting", "coordinated_
 COVERAGE_NOISE_PROFILE: tuple[float, ...] = (
     9.55, 9.55, 9.55, 9.55, 9.52, 7.75, 5.22, 3.47, 2.21, 1.0,
 )  # fmt: skip
+#: :attr:`FusionConfig.temporal_kernel` as fitted
+#: (:func:`~dronefl.experiments.replay.fit_temporal_kernel`, 5 taps) on two crop-field
+#: episodes of Case 2 with the fixed models (``dronefl track --env crop_field --scenario case2
+#: --method fixed --seed 20`` and ``21``; 16,000 steps, the truth known there): the drones'
+#: sent predictions lag a random-walk target, and the kernel extrapolates (+1.48 on the newest,
+#: -0.53 on the one before). 5 taps, not 10: a 10-tap kernel also weighs lag 5, the
+#: simulator's 1 s velocity redraw, which real vehicles do not have.
+TEMPORAL_KERNEL: tuple[float, ...] = (1.4806, -0.5331, -0.0056, -0.1841, 0.2422)
 
 
 @dataclass(frozen=True)
@@ -85,7 +93,12 @@ class FusionConfig:
     drones did not all report keep ``adaptive``); ``coverage_noise`` ``(s_1, ..., s_L)``: the
     factor on ``R`` of a measurement whose pair sent one in ``n`` of the last ``L`` updates
     (``s_n``; :data:`COVERAGE_NOISE_PROFILE`), as a drone predicting from a window with few
-    detections errs more, ``None`` (default) the same ``R`` for every measurement.
+    detections errs more, ``None`` (default) the same ``R`` for every measurement;
+    ``temporal_kernel`` ``(w_0, ..., w_{L-1})``, summing to 1: the position the Fuser *outputs*
+    for a target (:attr:`Fuser.tracks`, :meth:`Fuser.forecast`) is ``sum_l w_l m_{t-l}``, ``m``
+    the ``R``-weighted mean of the fused predictions of the drones that sent the target at
+    each of the last ``L`` updates, where there are any (:data:`TEMPORAL_KERNEL`); the filter's
+    state, history and labels are unchanged; ``None`` (default): the filter's position.
     """
 
     method: str = "robust"
@@ -107,6 +120,7 @@ class FusionConfig:
     noise_estimate: str = "consensus"
     noise_split: Literal["adaptive", "reported"] = "adaptive"
     coverage_noise: tuple[float, ...] | None = None
+    temporal_kernel: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if self.method not in FUSION_METHODS:
@@ -155,6 +169,17 @@ class FusionConfig:
             if self.method != "robust":
                 raise ValueError("coverage_noise: needs the robust fusion method")
             object.__setattr__(self, "coverage_noise", tuple(float(v) for v in scales))
+        if self.temporal_kernel is not None:
+            weights = tuple(self.temporal_kernel)  # a list when read back from JSON
+            if not weights or not all(
+                isinstance(v, int | float) and math.isfinite(v) for v in weights
+            ):
+                raise ValueError(
+                    f"temporal_kernel: must be finite weights, got {self.temporal_kernel!r}"
+                )
+            if abs(sum(weights) - 1.0) > 1e-9:
+                raise ValueError(f"temporal_kernel: the weights must sum to 1, got {sum(weights)}")
+            object.__setattr__(self, "temporal_kernel", tuple(float(v) for v in weights))
         for name in ("gate", "consensus_gate"):
             value = getattr(self, name)
             if value is not None and not value > 0:
@@ -337,6 +362,11 @@ class Fuser:
         self._coverage = None if coverage is None else np.asarray(coverage)
         # which of the last L updates carried each pair's measurement, newest first, (L, D, T)
         self._sent = np.zeros((len(coverage or ()), len(self.drone_ids), n_targets), dtype=bool)
+        kernel = self.config.temporal_kernel
+        self._kernel = None if kernel is None else np.asarray(kernel)
+        # the fused positions of the last L updates per pair, newest first, (L, D, T, 2) m
+        self._recent = np.full((len(kernel or ()), len(self.drone_ids), n_targets, 2), np.nan)
+        self._output: dict[int, np.ndarray] = {}  # target index -> the kernel's position
         self.rejections = 0
         self.measurements = 0
         self.resets = 0
@@ -359,6 +389,8 @@ class Fuser:
     def __setstate__(self, state: dict) -> None:
         """Unpickle, back to rows (also a Fuser pickled with rows, before 2026-12-06)."""
         state.setdefault("_coverage", None)  # pickled before coverage_noise (2026-12-06)
+        state.setdefault("_kernel", None)  # pickled before temporal_kernel (2026-12-06)
+        state.setdefault("_output", {})
         self.__dict__.update(state)
         self._history = [
             rows if isinstance(rows, list) else _history_rows(rows) for rows in self._history
@@ -386,6 +418,8 @@ class Fuser:
             j = self.target_ids[k]
             accepted, rejected = self._last.get(j, (0, 0))
             mean = means[k]
+            if k in self._output:
+                mean[:2] = self._output[k]
             velocity = self.model.velocity(mean)
             out[j] = Track(j, self.t, mean, covariances[k], velocity, accepted, rejected)
         return out
@@ -411,8 +445,13 @@ class Fuser:
             self._birth(
                 int(batch.targets[g]), batch.drone[rows], batch.position[rows], batch.scale[rows]
             )
+        used = ~tracked[batch.group]  # the rows fused: those of a birth, and those accepted
         if tracked.any():
-            self._fuse(batch if tracked.all() else batch.select(tracked))
+            used[tracked[batch.group]] = self._fuse(
+                batch if tracked.all() else batch.select(tracked)
+            )
+        if self._kernel is not None:
+            self._apply_kernel(batch.drone[used], batch.target[used], batch.position[used])
         if self.record:
             measured = set(batch.targets.tolist())
             for j in self._alive.nonzero()[0].tolist():
@@ -493,9 +532,33 @@ class Fuser:
         self._start(j, positions.mean(axis=0), np.linalg.inv(info), len(drones))
         self._last[self.target_ids[j]] = (len(drones), 0)
 
-    def _fuse(self, batch: MeasurementBatch) -> None:
+    def _apply_kernel(self, drone: np.ndarray, target: np.ndarray, position: np.ndarray) -> None:
+        """Remember this update's fused measurements (``drone`` / ``target`` indices ``(K,)``,
+        ``position`` ``(K, 2)`` m) and set :attr:`_output`, the kernel's position of every
+        live target that a drone sent at each of the last ``L`` updates
+        (:attr:`FusionConfig.temporal_kernel`): ``sum_l w_l m_{t-l}``, with ``m_{t-l} = (sum_i
+        R_i^-1)^-1 sum_i R_i^-1 z_i(t-l)`` over those drones ``i`` and their current ``R``."""
+        self._recent[1:] = self._recent[:-1].copy()
+        self._recent[0] = np.nan
+        self._recent[0, drone, target] = position
+        full = np.isfinite(self._recent[..., 0]).all(axis=0)  # (D, T)
+        self._output = {}
+        live = (full.any(axis=0) & self._alive).nonzero()[0]
+        if not live.size:
+            return
+        noise = self.method.noise()
+        for k in live.tolist():
+            drones = full[:, k].nonzero()[0]
+            info = np.linalg.inv(noise[drones, k])  # R_i^-1, (n, 2, 2)
+            smoothed = np.einsum("l,lnx->nx", self._kernel, self._recent[:, drones, k])
+            self._output[k] = np.linalg.solve(
+                info.sum(axis=0), np.einsum("nab,nb->a", info, smoothed)
+            )
+
+    def _fuse(self, batch: MeasurementBatch) -> np.ndarray:
         """Fuse ``batch`` (of tracked targets only) into the tracks; count the gated-out
-        measurements, reset the tracks lost for ``reset_after`` updates, record the rest."""
+        measurements, reset the tracks lost for ``reset_after`` updates, record the rest.
+        Returns the rows fused ``(K,)`` (those not gated out)."""
         j = batch.targets
         result = self.method.update(batch, self._mean[j], self._cov[j])
         self._mean[j], self._cov[j] = result.mean, result.covariance
@@ -518,6 +581,7 @@ class Fuser:
             elif self.record:  # result's rows are fresh arrays, kept as they are
                 row = (result.mean[g], result.covariance[g], n_accepted)
                 self._history[k].append(self._pending[k] + row)
+        return result.accepted
 
     def history(self, target_id: int) -> TrackHistory | None:
         """The recorded forward pass of ``target_id``'s track (``None`` before its birth)."""
@@ -551,14 +615,18 @@ class Fuser:
         return out
 
     def forecast(self, dt: float) -> TrackForecast:
-        """The planner's view (:class:`TrackForecast`) of the tracked targets, with the
-        covariance propagated ``dt`` s (one planning step) ahead of the current tracks."""
+        """The planner's view (:class:`TrackForecast`) of the tracked targets (the positions
+        the temporal kernel's where it applies, as :attr:`tracks`), with the covariance
+        propagated ``dt`` s (one planning step) ahead of the current tracks."""
         if not dt > 0:
             raise ValueError(f"forecast needs dt > 0 s, got {dt}")
         index = np.flatnonzero(self._alive)
         ids = tuple(self.target_ids[k] for k in index)
         n = self.model.ndim
         positions = self._mean[index, :2].copy()
+        for row, k in enumerate(index.tolist()):
+            if k in self._output:  # the temporal kernel's
+                positions[row] = self._output[k]
         predicted = np.zeros((len(ids), n, n))
         for row, k in enumerate(index):
             f = self.model.jacobian(self._mean[k], dt)
@@ -702,13 +770,14 @@ def fusion_config(
 def fusion_record(config: FusionConfig) -> str:
     """``config`` as an episode's ``metrics.json`` records it (``fusion_config``, read back by
     ``dronefl replay --as-flown``): JSON of every field, keys sorted, without ``noise_split``
-    when it is ``adaptive`` and ``coverage_noise`` when it is ``None`` (as every episode flown
-    before those fields existed records them)."""
+    when it is ``adaptive`` and ``coverage_noise`` / ``temporal_kernel`` when ``None`` (as every
+    episode flown before those fields existed records them)."""
     fields = asdict(config)
     if fields["noise_split"] == "adaptive":
         del fields["noise_split"]
-    if fields["coverage_noise"] is None:  # as every episode flown before it (2026-12-06)
-        del fields["coverage_noise"]
+    for name in ("coverage_noise", "temporal_kernel"):  # as every episode flown before them
+        if fields[name] is None:
+            del fields[name]
     return json.dumps(fields, sort_keys=True)
 
 

@@ -27,7 +27,7 @@ def test_every_setting_names_every_field_and_ours_is_the_config_defaults():
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False,
+        "coverage_noise": False, "temporal_kernel": False,
     }  # fmt: skip
 
 
@@ -152,3 +152,20 @@ def test_coverage_noise_reaches_the_fusion_and_is_recorded_only_when_set(capture
         TrackConfig(
             scenario=load_scenario("case2"), out=tmp_path, fusion="paper", coverage_noise=True
         )
+
+
+def test_the_temporal_kernel_is_for_random_walk_targets_only(tmp_path):
+    from dronefl.config import load_scenario
+    from dronefl.deploy.launcher import DeployConfig, _commands
+    from dronefl.tracking.fusion import TEMPORAL_KERNEL
+
+    for case, kernel in (("case2", TEMPORAL_KERNEL), ("case3", None)):
+        scenario = load_scenario(case)
+        fields = setting_fields("recommended", temporal_kernel=True)
+        config = TrackConfig(scenario=scenario, out=tmp_path, **fields)
+        assert config.fusion_config().temporal_kernel == kernel
+        assert config.track_fusion_config().temporal_kernel == kernel
+        assert ("temporal_kernel" in config.describe()["fusion_config"]) == (kernel is not None)
+        deploy = DeployConfig(scenario=case, out=tmp_path, temporal_kernel=True)
+        cloud = _commands(deploy, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
+        assert ("--temporal-kernel" in cloud) == (kernel is not None)
