@@ -26,6 +26,7 @@ from dronefl.experiments.replay import flown_config, load_episode, replay
 from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model, predictor_config
+from dronefl.tracking.fusion import TEMPORAL_KERNEL
 
 
 def _drone_process(launcher: subprocess.Popen, drone_id: int) -> psutil.Process | None:
@@ -55,7 +56,7 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
         "--seed", "3",
         "--duration", "60", "--fl-period", "25", "--config", "metric-scaffold", "--epochs", "1",
         "--label-drones", "lower", "--deshrink-labels", "--random-walk-track-psd", "30",
-        "--noise-split", "reported",
+        "--noise-split", "reported", "--temporal-kernel",
         "--base-port", str(free_port_block()),
         "--out", str(out),
         "--pretrained", str(quick_pretrained_case2), "--restart-drones",
@@ -83,20 +84,22 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert survivors(run_env[MARK]) == []
     metrics = DeploymentMetrics.load(out / "metrics.json")
     assert metrics.engine == "deployment"
-    # The planner flew on a second, q = 30 filter, the labels' filter the fusion's own, with
-    # the drones' noise reports: the replay of what the cloud received (predictions and
-    # reports), with the settings the deployment records, gives back its tracks; one filter
-    # or the adaptive split does not.
+    # The planner flew on a second, q = 30 filter with the temporal kernel, the labels' filter
+    # the fusion's own, with the drones' noise reports: the replay of what the cloud received
+    # (predictions and reports), with the settings the deployment records, gives back its
+    # tracks; one filter, the adaptive split or no kernel does not.
     assert metrics.config["track_psd"] == 30.0
     episode = load_episode(out)
     flown_fusion = flown_config(episode)
     assert flown_fusion.noise_split == "reported" and episode.received_reports is not None
+    assert flown_fusion.temporal_kernel == TEMPORAL_KERNEL
     assert np.isfinite(episode.received_reports).any()
     flown = replay(episode, flown_fusion, track_psd=episode.flown_track_psd)
     assert flown.track_psd == 30.0
     for other in (
         replay(episode, flown_fusion),
         replay(episode, replace(flown_fusion, noise_split="adaptive"), track_psd=30.0),
+        replay(episode, replace(flown_fusion, temporal_kernel=None), track_psd=30.0),
     ):
         for target, changed in zip(flown.targets, other.targets, strict=True):
             assert target.fused_mse == pytest.approx(target.recorded_mse, rel=1e-9, abs=1e-12)
