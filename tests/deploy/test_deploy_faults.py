@@ -96,14 +96,17 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert np.isfinite(episode.received_reports).any()
     flown = replay(episode, flown_fusion, track_psd=episode.flown_track_psd)
     assert flown.track_psd == 30.0
-    for other in (
-        replay(episode, flown_fusion),
-        replay(episode, replace(flown_fusion, noise_split="adaptive"), track_psd=30.0),
-        replay(episode, replace(flown_fusion, temporal_kernel=None), track_psd=30.0),
-    ):
+    # (Where some drone sent the target at each of the last 5 steps the output is the
+    # kernel's whatever the filter's q: one filter then moves the tracks less.)
+    others = (
+        (replay(episode, flown_fusion), 1e-6),
+        (replay(episode, replace(flown_fusion, noise_split="adaptive"), track_psd=30.0), 1e-3),
+        (replay(episode, replace(flown_fusion, temporal_kernel=None), track_psd=30.0), 1e-3),
+    )
+    for other, apart in others:
         for target, changed in zip(flown.targets, other.targets, strict=True):
             assert target.fused_mse == pytest.approx(target.recorded_mse, rel=1e-9, abs=1e-12)
-            assert changed.fused_mse != pytest.approx(target.recorded_mse, rel=1e-3)
+            assert changed.fused_mse != pytest.approx(target.recorded_mse, rel=apart)
     assert metrics.processes >= 7  # world, cloud, SuperLink, 3 drones, 3 SuperNodes, ...
 
     # Rounds at steps 125 and 250 (t = 25 s, 50 s): the episode went on. Drone 3 flies lowest
