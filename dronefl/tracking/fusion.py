@@ -316,7 +316,9 @@ class Fuser:
     ``initial_positions``: optional ``{target_id: (2,)}`` m to start tracks at ``t0`` (with
     position std ``initial_noise_std``); other targets get a track at their first measurement
     (the mean of that step's positions). With :attr:`FusionConfig.coverage_noise` it counts,
-    per pair, the updates among the last ``L`` that carried its measurement. Counters:
+    per pair, the updates among the last ``L`` that carried its measurement; with
+    :attr:`FusionConfig.temporal_kernel` it keeps each pair's fused positions of the last
+    ``L`` updates. Counters:
     :attr:`rejections` (gated-out measurements), :attr:`measurements` (all fused or gated
     ones), :attr:`resets` (tracks re-initialised after ``reset_after`` all-rejected updates),
     :attr:`dropped` (non-finite measurements ignored).

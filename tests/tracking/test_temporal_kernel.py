@@ -113,3 +113,23 @@ def test_the_kernel_is_checked_and_recorded_only_when_set():
     config = FusionConfig(method="paper", temporal_kernel=list(TEMPORAL_KERNEL))  # from JSON
     assert config.temporal_kernel == TEMPORAL_KERNEL
     assert FusionConfig(**json.loads(fusion_record(config))) == config
+
+
+def test_a_pickled_fuser_goes_on_with_its_kernel_as_if_never_stopped():
+    import pickle
+
+    truth, prediction = _lagging(30)
+    config = FusionConfig(temporal_kernel=TEMPORAL_KERNEL, coverage_noise=(3.0, 2.0, 1.0))
+    fuser = Fuser([1], [1, 2], config, {1: np.zeros(2)})
+
+    def step(f, k):
+        drones = (1, 2) if k % 7 else (1,)  # drone 2 skips every 7th update
+        return f.update((k + 1) * DT, [PositionMeasurement(i, 1, prediction[k]) for i in drones])
+
+    for k in range(12):
+        step(fuser, k)
+    copy = pickle.loads(pickle.dumps(fuser))
+    for k in range(12, 30):
+        a, b = step(fuser, k)[1], step(copy, k)[1]
+        np.testing.assert_array_equal(a.mean, b.mean)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
