@@ -660,6 +660,12 @@ def format_result(result: ReplayResult) -> str:
         )
         + (", the drones' predictions bias-corrected" if result.correct_bias else "")
         + (", only those made while the drone detected the target" if result.detected_only else "")
+        + (
+            f", the fused tracks' output a {len(result.fusion.temporal_kernel)}-tap temporal kernel"
+            if result.fusion.temporal_kernel is not None
+            else ""
+        )
+        + (", R scaled by window coverage" if result.fusion.coverage_noise is not None else "")
         + "; MSE in m².",
         "",
         "| " + " | ".join(head) + " |",

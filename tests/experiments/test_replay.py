@@ -28,7 +28,7 @@ from dronefl.experiments.replay import (
 from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, PositionMeasurement, fusion_config
-from dronefl.tracking.fusion import fusion_record
+from dronefl.tracking.fusion import TEMPORAL_KERNEL, fusion_record
 
 DT = 0.2  # s, the scenarios' step
 
@@ -138,6 +138,20 @@ def test_replay_with_a_second_filter_for_the_tracks(tmp_path):
     assert "a second filter with q = 10.0" in format_result(two)
     with pytest.raises(ValueError, match="--track-psd"):
         replay(episode, config, track_psd=-1.0)
+
+
+def test_replay_with_the_temporal_kernel_moves_the_tracks_not_the_labels(tmp_path):
+    # `track --temporal-kernel`: the tracks are the kernel's, the labels the filter's.
+    _episode(tmp_path / "ep")
+    episode = load_episode(tmp_path / "ep")
+    config = replay_config(episode.scenario)
+    plain = replay(episode, config)
+    kernel = replay(episode, replace(config, temporal_kernel=TEMPORAL_KERNEL))
+
+    assert kernel.fused_mse != plain.fused_mse
+    assert kernel.label_mse == plain.label_mse and kernel.rejections == plain.rejections
+    assert "a 5-tap temporal kernel" in format_result(kernel)
+    assert "temporal kernel" not in format_result(plain)
 
 
 def test_replay_splits_the_fused_error_by_the_drones_that_saw_the_target(tmp_path):
