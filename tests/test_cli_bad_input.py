@@ -214,6 +214,8 @@ BAD_OPTIONS = [
     "cloud --model FILE --track-psd -1",
     "track --planner-distance later",
     "track --constant-speed-psd 0",
+    "track --setting ours --fusion paper --coverage-noise",
+    "table1 --setting ours --fusion paper --coverage-noise",
     "deploy up --constant-speed-psd -1",
     "deploy up --setting paper",
     "image-baseline --epochs 0",

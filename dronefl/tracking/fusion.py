@@ -97,8 +97,10 @@ class FusionConfig:
     ``temporal_kernel`` ``(w_0, ..., w_{L-1})``, summing to 1: the position the Fuser *outputs*
     for a target (:attr:`Fuser.tracks`, :meth:`Fuser.forecast`) is ``sum_l w_l m_{t-l}``, ``m``
     the ``R``-weighted mean of the fused predictions of the drones that sent the target at
-    each of the last ``L`` updates, where there are any (:data:`TEMPORAL_KERNEL`); the filter's
-    state, history and labels are unchanged; ``None`` (default): the filter's position.
+    each of the last ``L`` updates, where there are any (:data:`TEMPORAL_KERNEL`, fitted for
+    one update per step of 0.2 s, as the closed loop and the deployed cloud make them); the
+    filter's state, history and labels are unchanged; ``None`` (default): the filter's
+    position.
     """
 
     method: str = "robust"
