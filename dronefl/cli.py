@@ -694,6 +694,17 @@ TemporalKernelOption = Annotated[
         "field); the labels unchanged.",
     ),
 ]
+PretrainGapsOption = Annotated[
+    float | None,
+    typer.Option(
+        "--pretrain-gaps",
+        min=0.0,
+        max=1.0,
+        help="Probability that a crop-field pretraining window has a run of its detections "
+        "hidden, as the orchard's trees hide targets (the trajectory predictors; 0: the "
+        "windows as recorded).",
+    ),
+]
 NetReportsOption = Annotated[
     bool,
     typer.Option(
@@ -822,6 +833,7 @@ def track(
     detected_only: DetectedOnlyOption = None,
     coverage_noise: CoverageNoiseOption = None,
     temporal_kernel: TemporalKernelOption = None,
+    pretrain_gaps: PretrainGapsOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
@@ -877,6 +889,7 @@ def track(
             random_walk_track_psd=random_walk_track_psd,
             coverage_noise=coverage_noise,
             temporal_kernel=temporal_kernel,
+            pretrain_gaps=pretrain_gaps,
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -949,6 +962,7 @@ def table1(
     detected_only: DetectedOnlyOption = None,
     coverage_noise: CoverageNoiseOption = None,
     temporal_kernel: TemporalKernelOption = None,
+    pretrain_gaps: PretrainGapsOption = None,
     net_reports: NetReportsOption = False,
     track_psd: TrackPsdOption = None,
     planner_distance: PlannerDistanceOption = None,
@@ -995,6 +1009,7 @@ def table1(
             constant_speed_psd=constant_speed_psd, random_walk_track_psd=random_walk_track_psd,
             coverage_noise=coverage_noise,
             temporal_kernel=temporal_kernel,
+            pretrain_gaps=pretrain_gaps,
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1018,6 +1033,7 @@ def pretrain(
     past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
     duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
     preset: PresetOption = "metric-scaffold",
+    pretrain_gaps: PretrainGapsOption = None,
     image: Annotated[
         bool,
         typer.Option(
@@ -1032,11 +1048,16 @@ def pretrain(
     frames), L_p -> L_f = 1, and print each model's prediction error (MSE, m^2) per drone on
     the held-out last 20 % of the recording. `track` does this on demand (with the same
     --config; the default is the recommended setting's, metric-scaffold). A model already in
-    --out is kept; one stopped early goes on from its last round.
+    --out is kept; one stopped early goes on from its last round. --pretrain-gaps (default:
+    the recommended setting's) hides a run of detections in that share of the windows of
+    the trajectory predictors (not the image model).
 
     Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
     """
     from dronefl.experiments.pretrain import KINDS, PretrainSpec, held_out_mse, pretrained_state
+    from dronefl.experiments.track import RECOMMENDED
+
+    gaps = RECOMMENDED["pretrain_gaps"] if pretrain_gaps is None else pretrain_gaps
 
     spec = load_scenario(scenario)
     if rounds < 1 or past_steps < 1:
@@ -1045,7 +1066,15 @@ def pretrain(
         raise fail(f"--duration: must be positive, got {duration}")
     try:
         specs = [
-            PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration, preset=preset)
+            PretrainSpec(
+                spec,
+                kind,
+                past_steps,
+                rounds=rounds,
+                duration=duration,
+                preset=preset,
+                detection_gaps=0.0 if kind == "image" else float(gaps),
+            )  # fmt: skip
             for kind in KINDS
             if image or kind != "image"
         ]
@@ -1501,6 +1530,7 @@ def deploy_up(
     detected_only: DetectedOnlyOption = None,
     coverage_noise: CoverageNoiseOption = None,
     temporal_kernel: TemporalKernelOption = None,
+    pretrain_gaps: PretrainGapsOption = None,
     net_reports: NetReportsOption = False,
     planner_distance: PlannerDistanceOption = None,
     constant_speed_psd: ConstantSpeedPsdOption = None,
@@ -1523,7 +1553,7 @@ def deploy_up(
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
         planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
         random_walk_track_psd=random_walk_track_psd, coverage_noise=coverage_noise,
-        temporal_kernel=temporal_kernel,
+        temporal_kernel=temporal_kernel, pretrain_gaps=pretrain_gaps,
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

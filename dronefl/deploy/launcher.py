@@ -73,6 +73,7 @@ class DeployConfig:
     detected_only: bool = False
     coverage_noise: bool = False
     temporal_kernel: bool = False
+    pretrain_gaps: float = 0.0
     net_reports: bool = False
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
@@ -98,6 +99,8 @@ class DeployConfig:
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
         check_track_psd("--random-walk-track-psd", self.random_walk_track_psd)
+        if not 0.0 <= self.pretrain_gaps <= 1.0:
+            raise ValueError(f"--pretrain-gaps: must be in [0, 1], got {self.pretrain_gaps}")
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -118,7 +121,13 @@ def pretrained_model(config: DeployConfig, scenario: Scenario, out: Path) -> Pat
     from dronefl.deploy.clientapp import save_model
     from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 
-    spec = PretrainSpec(scenario, "dronefl", stride=config.stride, preset=config.preset)
+    spec = PretrainSpec(
+        scenario,
+        "dronefl",
+        stride=config.stride,
+        preset=config.preset,
+        detection_gaps=config.pretrain_gaps,
+    )
     state = pretrained_state(spec, config.pretrained, progress=False)
     path = out / "model" / "pretrained.npz"
     save_model(path, state, 0, spec.model)

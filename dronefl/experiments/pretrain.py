@@ -69,7 +69,10 @@ class PretrainSpec:
     s of crop field recorded with seed ``recording_seed``, with windows of ``past_steps``
     L_p -> 1 every ``stride`` samples, for ``rounds`` FL rounds (or ``rounds`` x E epochs of
     centralized training), with the training setting ``preset`` (a key of
-    :data:`dronefl.fl.records.PRESETS`: model options, E, lr, batch and optimiser)."""
+    :data:`dronefl.fl.records.PRESETS`: model options, E, lr, batch and optimiser), and with
+    a run of detections hidden in a ``detection_gaps`` fraction of the training windows
+    (:func:`~dronefl.models.train.cut_detection_gaps`: the crop field hardly hides a target,
+    the orchard does; 0: the windows as recorded)."""
 
     scenario: Scenario
     kind: str = "dronefl"
@@ -79,8 +82,11 @@ class PretrainSpec:
     duration: float = 600.0
     recording_seed: int = PRETRAIN_SEED
     preset: str = "ours"
+    detection_gaps: float = 0.0
 
     def __post_init__(self) -> None:
+        if not 0.0 <= self.detection_gaps <= 1.0:
+            raise ValueError(f"--pretrain-gaps: must be in [0, 1], got {self.detection_gaps}")
         if self.preset not in PRESETS:
             raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         if self.kind not in KINDS:
@@ -112,7 +118,9 @@ class PretrainSpec:
             stride=self.stride,
             seed=0,
         )
-        base = PRESETS[self.preset].apply(unset)
+        base = dataclasses.replace(
+            PRESETS[self.preset].apply(unset), detection_gaps=self.detection_gaps
+        )
         key = _digest(
             [self.data_key, base.training_key(), repr(base.model), package_digest(TRAINING_CODE)]
         )

@@ -167,13 +167,14 @@ RECOMMENDED: dict[str, str | int | float | bool] = {
     "random_walk_track_psd": TUNED_RANDOM_WALK_TRACK_PSD,
     "coverage_noise": False,
     "temporal_kernel": True,
+    "pretrain_gaps": 0.0,
 }
 
 #: The :class:`TrackConfig` fields a named setting (``--setting``) fills in.
 SETTING_FIELDS: tuple[str, ...] = (
     "preset", "labels", "fusion", "label_drones", "epochs", "noise_split", "correct_bias",
     "detected_only", "planner_distance", "constant_speed_psd", "random_walk_track_psd",
-    "coverage_noise", "temporal_kernel",
+    "coverage_noise", "temporal_kernel", "pretrain_gaps",
 )  # fmt: skip
 #: Named closed-loop settings (``track``/``table1``/``deploy up --setting``), every field of
 #: :data:`SETTING_FIELDS` (``epochs`` ``None``: the preset's; ``constant_speed_psd`` ``None``: the
@@ -189,13 +190,13 @@ SETTINGS: dict[str, dict[str, str | int | float | bool | None]] = {
         "preset": "ours", "labels": "smoothed", "fusion": "robust", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False, "temporal_kernel": False,
+        "coverage_noise": False, "temporal_kernel": False, "pretrain_gaps": 0.0,
     },
     "paper": {
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False, "temporal_kernel": False,
+        "coverage_noise": False, "temporal_kernel": False, "pretrain_gaps": 0.0,
     },
 }  # fmt: skip
 
@@ -258,7 +259,10 @@ class TrackConfig:
     in a scenario with random-walk targets, the tracks the fusion outputs (the planner's, the
     log's) are a short kernel over the drones' last predictions (:attr:`~dronefl.tracking.
     FusionConfig.temporal_kernel`, :data:`~dronefl.tracking.fusion.TEMPORAL_KERNEL`; the
-    labels unchanged);
+    labels unchanged); ``pretrain_gaps``: the probability that a crop-field pretraining window
+    has a run of its detections hidden, as the orchard's trees hide targets (:attr:`~dronefl.
+    experiments.pretrain.PretrainSpec.detection_gaps`; the trajectory predictors only, the
+    image model reads frames; 0: the windows as recorded);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -294,6 +298,7 @@ class TrackConfig:
     constant_speed_psd: float | None = None
     coverage_noise: bool = False
     temporal_kernel: bool = False
+    pretrain_gaps: float = 0.0
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -324,6 +329,8 @@ class TrackConfig:
             raise ValueError("--net-reports: needs --noise-split reported")
         if self.coverage_noise and self.fusion != "robust":
             raise ValueError("--coverage-noise: needs --fusion robust")
+        if not 0.0 <= self.pretrain_gaps <= 1.0:
+            raise ValueError(f"--pretrain-gaps: must be in [0, 1], got {self.pretrain_gaps}")
         planner_track_psd(self.scenario, self.track_psd, self.random_walk_track_psd)
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
@@ -362,6 +369,7 @@ class TrackConfig:
             rounds=self.pretrain_rounds,
             duration=self.pretrain_seconds,
             preset=self.preset,
+            detection_gaps=0.0 if self.learner.model_input == "frames" else self.pretrain_gaps,
         )
 
     def describe(self) -> dict[str, str | int | float | bool]:
@@ -395,6 +403,8 @@ class TrackConfig:
         del values["constant_speed_psd"]  # in fusion_config where it applies, not elsewhere
         del values["coverage_noise"]  # in fusion_config
         del values["temporal_kernel"]  # in fusion_config where it applies
+        if self.pretrain_gaps == 0.0:  # as every episode flown before the option (12-06)
+            del values["pretrain_gaps"]
         values["fusion_config"] = fusion_record(self.fusion_config())
         return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 

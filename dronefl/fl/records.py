@@ -96,7 +96,9 @@ class FlSettings:
     averages them into c, sent beside the weights, and the local steps follow
     ``g_i - c_i + c``; needs ``optimizer = "sgd"``); ``lr_step_at`` the fraction of the
     rounds trained at ``lr``, the rest at ``lr`` x :data:`LR_STEP_FACTOR` (1.0: a constant
-    lr; see :meth:`lr_of`). The
+    lr; see :meth:`lr_of`); ``detection_gaps`` the probability that a training window has a
+    run of its detections hidden (:func:`~dronefl.models.train.cut_detection_gaps`; 0: none,
+    the closed loop's online rounds, whose orchard windows have real gaps). The
     defaults are the setting the closed loop's models are pretrained with; :data:`PRESETS`
     names the paper's and the later ``metric`` and ``metric-sgd`` ones.
     """
@@ -128,6 +130,7 @@ class FlSettings:
     optimizer: str = "adam"
     drift_correction: str = "none"
     lr_step_at: float = 1.0
+    detection_gaps: float = 0.0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -163,6 +166,8 @@ class FlSettings:
             raise SettingsError("lr must be > 0 and proximal_mu >= 0")
         if not 0.0 < self.lr_step_at <= 1.0:
             raise SettingsError(f"lr-step-at: must be in (0, 1], got {self.lr_step_at}")
+        if not 0.0 <= self.detection_gaps <= 1.0:
+            raise SettingsError(f"detection-gaps: must be in [0, 1], got {self.detection_gaps}")
         if self.aggregation not in AGGREGATIONS:
             raise SettingsError(
                 f"aggregation: {self.aggregation!r} is not one of {', '.join(AGGREGATIONS)}"
@@ -233,6 +238,7 @@ class FlSettings:
             self.batch_size,
             self.seed_for(server_round, drone_id),
             self.optimizer,
+            self.detection_gaps,
         )
 
     def lr_of(self, server_round: int) -> float:
@@ -258,10 +264,13 @@ class FlSettings:
         """Every setting that decides what a run trains, i.e. all but where it reads and
         writes and whether it resumes (:data:`WHERE_FIELDS`): two runs with equal keys train
         the same weights. A constant lr (``lr_step_at`` 1.0) leaves ``lr_step_at`` out, so
-        the folders trained before the lr step existed keep their key."""
+        the folders trained before the lr step existed keep their key, and no detection gaps
+        leaves ``detection_gaps`` out alike."""
         key = {k: v for k, v in asdict(self).items() if k not in WHERE_FIELDS}
         if self.lr_step_at == 1.0:
             del key["lr_step_at"]
+        if self.detection_gaps == 0.0:
+            del key["detection_gaps"]
         return key
 
     def to_run_config(self) -> dict[str, str | int | float | bool]:

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from dronefl.models.windows import WindowSet
+from dronefl.models.windows import BOX_DIM, FEATURE_DIM, WindowSet
 
 #: Extra loss term computed from the model being trained (e.g. FedProx's proximal term).
 Regularizer = Callable[[nn.Module], torch.Tensor]
@@ -30,14 +30,17 @@ SGD_MOMENTUM = 0.9
 @dataclass(frozen=True)
 class TrainConfig:
     """Local training: ``epochs`` E, learning rate ``lr``, ``batch_size`` windows, the
-    ``seed`` of the shuffling and dropout, and the ``optimizer``: ``adam`` (the paper's) or
-    ``sgd`` (with momentum 0.9), started afresh by every call."""
+    ``seed`` of the shuffling and dropout, the ``optimizer``: ``adam`` (the paper's) or
+    ``sgd`` (with momentum 0.9), started afresh by every call, and ``detection_gaps``: the
+    probability that a window is trained on with a gap cut into its detections
+    (:func:`cut_detection_gaps`; 0: the windows as recorded)."""
 
     epochs: int = 10
     lr: float = 1e-3
     batch_size: int = 128
     seed: int = 0
     optimizer: str = "adam"
+    detection_gaps: float = 0.0
 
     def __post_init__(self) -> None:
         if self.optimizer not in OPTIMIZERS:
@@ -48,6 +51,10 @@ class TrainConfig:
             raise ValueError("TrainConfig.epochs and batch_size must be >= 1")
         if not self.lr > 0:
             raise ValueError(f"TrainConfig.lr must be positive, got {self.lr}")
+        if not 0.0 <= self.detection_gaps <= 1.0:
+            raise ValueError(
+                f"TrainConfig.detection_gaps must be in [0, 1], got {self.detection_gaps}"
+            )
 
 
 @dataclass(frozen=True)
@@ -128,6 +135,37 @@ def _tensors(data: WindowSet) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]
     )
 
 
+#: Offset of the generator that cuts detection gaps from the shuffling's seed, so that a run
+#: with gaps visits the windows in the same order as one without.
+GAP_SEED_OFFSET = 7_919
+
+
+def cut_detection_gaps(
+    features: torch.Tensor, probability: float, generator: torch.Generator
+) -> torch.Tensor:
+    """``features`` (B, L, FEATURE_DIM) with, in each window with probability
+    ``probability``, one run of missed detections cut in, as a tree or the edge of the image
+    hides a target: ``m ~ U{1..L-1}`` consecutive steps starting at ``s ~ U{0..L-m}`` lose
+    their box (the four box features 0) and their ``detected`` flag, the odometry kept. A
+    window that would be left without any detection keeps its own. A model pretrained where
+    targets are never hidden (the crop field) sees such windows only after deployment
+    (docs/fusion.md, "Windows with gaps in pretraining"). Returns a new tensor."""
+    batch, steps, _ = features.shape
+    if probability <= 0.0 or steps < 2:
+        return features
+    chosen = torch.rand(batch, generator=generator) < probability
+    length = torch.randint(1, steps, (batch,), generator=generator)
+    start = (torch.rand(batch, generator=generator) * (steps - length + 1)).long()
+    index = torch.arange(steps)
+    hidden = (index >= start[:, None]) & (index < (start + length)[:, None]) & chosen[:, None]
+    detected = features[..., FEATURE_DIM - 1] > 0.5
+    hidden &= ((detected & ~hidden).any(dim=1))[:, None]  # never hide a window's last one
+    out = features.clone()
+    out[..., :BOX_DIM] = out[..., :BOX_DIM].masked_fill(hidden[..., None], 0.0)
+    out[..., FEATURE_DIM - 1] = out[..., FEATURE_DIM - 1].masked_fill(hidden, 0.0)
+    return out
+
+
 def train_local(
     model: nn.Module,
     data: WindowSet,
@@ -137,7 +175,8 @@ def train_local(
     """Train ``model`` in place for ``config.epochs`` epochs of MSE on ``data``.
 
     Minimises ``MSE(model(x, h), y) + regularizer(model)``; the data are shuffled each epoch
-    with a generator seeded by ``config.seed`` (dropout uses the same seed).
+    with a generator seeded by ``config.seed`` (dropout uses the same seed), and each batch
+    gets its detection gaps (``config.detection_gaps``) from a generator of its own.
     """
     if len(data) == 0:
         raise ValueError("train_local: no training windows")
@@ -147,6 +186,7 @@ def train_local(
     else:
         optimiser = torch.optim.SGD(model.parameters(), lr=config.lr, momentum=SGD_MOMENTUM)
     generator = torch.Generator().manual_seed(config.seed)
+    gaps = torch.Generator().manual_seed(config.seed + GAP_SEED_OFFSET)
     torch.manual_seed(config.seed)
     model.train()
     n = len(data)
@@ -157,7 +197,8 @@ def train_local(
         total = 0.0
         for i in range(0, n, config.batch_size):
             idx = order[i : i + config.batch_size]
-            prediction = model(features[idx], altitude[idx])  # (b, L_f, 2) m
+            inputs = cut_detection_gaps(features[idx], config.detection_gaps, gaps)
+            prediction = model(inputs, altitude[idx])  # (b, L_f, 2) m
             loss = F.mse_loss(prediction, labels[idx])
             objective = loss if regularizer is None else loss + regularizer(model)
             optimiser.zero_grad(set_to_none=True)

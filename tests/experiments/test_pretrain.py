@@ -51,12 +51,16 @@ def test_every_training_setting_is_in_the_cache_key(tmp_path):
         replace(spec, duration=300.0),
         replace(spec, recording_seed=7),
         replace(spec, kind="centralized"),
+        replace(spec, detection_gaps=0.3),
     ]
     assert len({v.settings(tmp_path).out_dir for v in variants}) == len(variants)
     # The recording is shared by the two kinds and by every training setting.
     assert {v.settings(tmp_path).run_dir for v in variants[:4] + variants[6:]} == {
         spec.settings(tmp_path).run_dir
     }
+    assert variants[-1].settings(tmp_path).detection_gaps == 0.3
+    with pytest.raises(ValueError, match="--pretrain-gaps"):
+        replace(spec, detection_gaps=2.0)
 
 
 def test_changed_code_changes_the_cache_key(tmp_path, monkeypatch):

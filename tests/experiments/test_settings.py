@@ -27,7 +27,7 @@ def test_every_setting_names_every_field_and_ours_is_the_config_defaults():
         "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
         "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
         "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False, "temporal_kernel": False,
+        "coverage_noise": False, "temporal_kernel": False, "pretrain_gaps": 0.0,
     }  # fmt: skip
 
 
@@ -169,3 +169,25 @@ def test_the_temporal_kernel_is_for_random_walk_targets_only(tmp_path):
         deploy = DeployConfig(scenario=case, out=tmp_path, temporal_kernel=True)
         cloud = _commands(deploy, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
         assert ("--temporal-kernel" in cloud) == (kernel is not None)
+
+
+def test_pretrain_gaps_reach_the_predictors_pretraining_not_the_image_model_s(tmp_path):
+    from dronefl.config import load_scenario
+    from dronefl.deploy.launcher import DeployConfig
+
+    scenario = load_scenario("case2")
+    for method, gaps in (("dronefl", 0.3), ("fixed", 0.3), ("centralized", 0.3)):
+        config = TrackConfig(scenario, tmp_path, method=method, pretrain_gaps=gaps)
+        assert config.pretrain_spec().detection_gaps == gaps
+        assert config.describe()["pretrain_gaps"] == gaps
+    image = TrackConfig(scenario, tmp_path, method="centralized-image", detector="yolo",
+                        pretrain_gaps=0.3)  # fmt: skip
+    assert image.pretrain_spec().detection_gaps == 0.0
+    # None: no key, as every episode flown before the option.
+    assert "pretrain_gaps" not in TrackConfig(scenario, tmp_path).describe()
+    assert DeployConfig(scenario="case2", out=tmp_path, pretrain_gaps=0.3).pretrain_gaps == 0.3
+    for bad in (-0.1, 1.5):
+        with pytest.raises(ValueError, match="--pretrain-gaps: must be in"):
+            TrackConfig(scenario, tmp_path, pretrain_gaps=bad)
+        with pytest.raises(ValueError, match="--pretrain-gaps: must be in"):
+            DeployConfig(scenario="case2", out=tmp_path, pretrain_gaps=bad)

@@ -160,3 +160,16 @@ def test_the_closed_loop_trains_every_online_round_at_one_lr():
         "metric-scaffold-step", "dronefl", past_steps=10, stride=2, epochs=1, lr=3e-4, seed=0
     )
     assert settings.lr_step_at == 1.0 and settings.lr_of(settings.rounds + 1) == 3e-4
+
+
+def test_detection_gaps_reach_local_training_and_key_only_the_runs_that_cut_them():
+    plain = PRESETS["metric-scaffold"].apply(FlSettings("r", "o"))
+    gaps = replace(plain, detection_gaps=0.3)
+    assert plain.train_config(1, 1).detection_gaps == 0.0
+    assert gaps.train_config(4, 2).detection_gaps == 0.3
+    # No gaps keeps the key of the folders trained before they existed.
+    assert "detection_gaps" not in plain.training_key()
+    assert gaps.training_key()["detection_gaps"] == 0.3
+    assert FlSettings.from_run_config(gaps.to_run_config()) == gaps
+    with pytest.raises(SettingsError, match="detection-gaps: must be in"):
+        FlSettings("r", "o", detection_gaps=-0.1)
