@@ -3,6 +3,7 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import sys
@@ -695,16 +696,33 @@ TemporalKernelOption = Annotated[
     ),
 ]
 PretrainGapsOption = Annotated[
-    float | None,
+    str | None,
     typer.Option(
         "--pretrain-gaps",
-        min=0.0,
-        max=1.0,
         help="Probability that a crop-field pretraining window has a run of its detections "
         "hidden, as the orchard's trees hide targets (the trajectory predictors; 0: the "
-        "windows as recorded).",
+        "windows as recorded), or 'auto': per scenario the better of 0 and 0.3 on an orchard "
+        "validation recording (seed 1001).",
     ),
 ]
+
+
+def _pretrain_gaps(value: str | None) -> float | str | None:
+    """``--pretrain-gaps`` as the configurations take it: ``"auto"``, a probability, or
+    ``None`` (not given); a clear error otherwise."""
+    if value is None or value == "auto":
+        return value
+    try:
+        gaps = float(value)
+    except ValueError:
+        raise fail(
+            f"--pretrain-gaps: must be 'auto' or a number in [0, 1], got {value!r}"
+        ) from None
+    if not 0.0 <= gaps <= 1.0:
+        raise fail(f"--pretrain-gaps: must be 'auto' or in [0, 1], got {value}")
+    return gaps
+
+
 NetReportsOption = Annotated[
     bool,
     typer.Option(
@@ -889,7 +907,7 @@ def track(
             random_walk_track_psd=random_walk_track_psd,
             coverage_noise=coverage_noise,
             temporal_kernel=temporal_kernel,
-            pretrain_gaps=pretrain_gaps,
+            pretrain_gaps=_pretrain_gaps(pretrain_gaps),
         ),
         deshrink_labels=deshrink_labels,
         net_reports=net_reports,
@@ -1009,7 +1027,7 @@ def table1(
             constant_speed_psd=constant_speed_psd, random_walk_track_psd=random_walk_track_psd,
             coverage_noise=coverage_noise,
             temporal_kernel=temporal_kernel,
-            pretrain_gaps=pretrain_gaps,
+            pretrain_gaps=_pretrain_gaps(pretrain_gaps),
         ),
         deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
         weights_dtype=weights_dtype,
@@ -1054,10 +1072,13 @@ def pretrain(
 
     Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
     """
+    from dronefl.experiments.gap_choice import choose_detection_gaps
     from dronefl.experiments.pretrain import KINDS, PretrainSpec, held_out_mse, pretrained_state
     from dronefl.experiments.track import RECOMMENDED
+    from dronefl.validation import check_pretrain_gaps
 
-    gaps = RECOMMENDED["pretrain_gaps"] if pretrain_gaps is None else pretrain_gaps
+    gaps = _pretrain_gaps(pretrain_gaps)
+    gaps = RECOMMENDED["pretrain_gaps"] if gaps is None else gaps
 
     spec = load_scenario(scenario)
     if rounds < 1 or past_steps < 1:
@@ -1066,20 +1087,22 @@ def pretrain(
         raise fail(f"--duration: must be positive, got {duration}")
     try:
         specs = [
-            PretrainSpec(
-                spec,
-                kind,
-                past_steps,
-                rounds=rounds,
-                duration=duration,
-                preset=preset,
-                detection_gaps=0.0 if kind == "image" else float(gaps),
-            )  # fmt: skip
+            PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration, preset=preset)
             for kind in KINDS
             if image or kind != "image"
         ]
+        check_pretrain_gaps(gaps)
     except ValueError as exc:
         raise fail(str(exc)) from None
+    if gaps == "auto":
+        choice = choose_detection_gaps(specs[0], out)
+        scores = ", ".join(f"{p:g}: {v:.4g} m^2" for p, v in choice.mse.items())
+        typer.echo(f"--pretrain-gaps auto: {choice.chosen:g} (orchard validation MSE {scores})")
+        gaps = choice.chosen
+    specs = [
+        s if s.kind == "image" else dataclasses.replace(s, detection_gaps=float(gaps))
+        for s in specs
+    ]
     for pretraining in specs:
         pretrained_state(pretraining, out)
     for pretraining in specs:
@@ -1553,7 +1576,7 @@ def deploy_up(
         noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
         planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
         random_walk_track_psd=random_walk_track_psd, coverage_noise=coverage_noise,
-        temporal_kernel=temporal_kernel, pretrain_gaps=pretrain_gaps,
+        temporal_kernel=temporal_kernel, pretrain_gaps=_pretrain_gaps(pretrain_gaps),
     )  # fmt: skip
     if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
         raise fail(

@@ -9,7 +9,8 @@ detections. This records ``--duration`` s of the orchard under the scripted pilo
 pretrained on demand, 3-4 min each, cached under ``--pretrained``), the one-step prediction
 MSE (m²) by the number of detections n in the window, for windows whose target is detected
 at their last step (what a drone with ``detected_only`` sends) and for all windows (what
-Table I's prediction error averages). Writes a plot of the same beside the recording::
+Table I's prediction error averages; ``--pretrain-gaps auto`` chooses on the same figure, over
+all windows, on a recording with seed 1001). Writes a plot of the same beside the recording::
 
     python examples/window_coverage.py --scenario case2 --seed 10 --gaps 0 0.3 \\
         --out runs/gaps/coverage
@@ -18,43 +19,17 @@ Table I's prediction error averages). Writes a plot of the same beside the recor
 from __future__ import annotations
 
 import argparse
-import dataclasses
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
-import torch
 
 from dronefl.config import load_scenario
+from dronefl.experiments.gap_choice import window_errors, window_set
 from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 from dronefl.experiments.simulate import simulate
-from dronefl.logs import load_run
-from dronefl.models.model import build_model
-from dronefl.models.windows import FEATURE_DIM, WindowSet, build_windows, ground_truth_labels
+from dronefl.models.windows import FEATURE_DIM
 from dronefl.report.topdown import save_figure
-
-
-def orchard_windows(run: Path, spec: PretrainSpec, folder: Path) -> WindowSet:
-    """Every window (L_p -> 1, stride 1) of every drone of the recording ``run``."""
-    windows = dataclasses.replace(
-        spec.settings(folder).windows, future_steps=1, stride=1, train_fraction=1.0
-    )
-    logs, truth = load_run(run)
-    return WindowSet.concat(
-        [build_windows(log, ground_truth_labels(log, truth), windows) for log in logs.values()]
-    )
-
-
-@torch.no_grad()
-def squared_errors(
-    state: dict[str, torch.Tensor], spec: PretrainSpec, data: WindowSet
-) -> np.ndarray:
-    """Each window's one-step squared error (m², the mean of the two axes)."""
-    model = build_model(spec.model)
-    model.load_state_dict(state)
-    model.eval()
-    prediction = model(torch.from_numpy(data.features), torch.from_numpy(data.altitude))
-    return ((prediction.numpy() - data.labels) ** 2).mean(axis=(1, 2))
 
 
 def main() -> None:
@@ -76,12 +51,12 @@ def main() -> None:
     if not (run / "ground_truth.npz").is_file():
         simulate(scenario, environment="orchard", duration=args.duration, seed=args.seed,
                  out=run, plot=False)  # fmt: skip
-    data = orchard_windows(run, specs[args.gaps[0]], args.pretrained)
+    data = window_set(run, specs[args.gaps[0]], args.pretrained)
     detected = data.features[..., FEATURE_DIM - 1] > 0.5  # (B, L_p)
     count = detected.sum(axis=1)
     now = detected[:, -1]
     errors = {
-        g: squared_errors(pretrained_state(s, args.pretrained), s, data) for g, s in specs.items()
+        g: window_errors(pretrained_state(s, args.pretrained), s, data) for g, s in specs.items()
     }
     header = " | ".join(f"gaps {g:g}" for g in args.gaps)
     print(f"{args.scenario}, orchard seed {args.seed}: one-step MSE (m²) by detections n in the "

@@ -12,6 +12,7 @@ import shutil
 import signal
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import psutil
@@ -53,6 +54,14 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 QUICK_PRESETS = ("ours", "metric-scaffold")
 
 
+def quick_gaps() -> tuple[float, ...]:
+    """The pretraining detection gaps the quick models stand in for: none (the ``ours`` and
+    ``paper`` settings') and the recommended setting's."""
+    from dronefl.experiments.track import RECOMMENDED
+
+    return tuple(sorted({0.0, float(RECOMMENDED["pretrain_gaps"])}))
+
+
 @pytest.fixture(scope="session")
 def quick_pretrained(tmp_path_factory):
     """DroneFL models for Case 1, one per preset of :data:`QUICK_PRESETS`, each trained for
@@ -81,13 +90,19 @@ def quick_pretrained_case2(quick_pretrained, tmp_path) -> Path:
     from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 
     for preset in QUICK_PRESETS:
-        case1, case2 = (
-            PretrainSpec(load_scenario(name), "dronefl", preset=preset).settings(folder)
-            for name, folder in (("case1", quick_pretrained), ("case2", tmp_path / "pretrained"))
-        )
-        state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
-        checkpoint = Checkpoint("dronefl", 20, state, [])
-        save_checkpoint(case2.checkpoint_path, case2.history_path, checkpoint)
+        for gaps in quick_gaps():
+            case1, case2 = (
+                PretrainSpec(
+                    load_scenario(name), "dronefl", preset=preset, detection_gaps=gaps
+                ).settings(folder)
+                for name, folder in (
+                    ("case1", quick_pretrained),
+                    ("case2", tmp_path / "pretrained"),
+                )
+            )
+            state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
+            checkpoint = Checkpoint("dronefl", 20, state, [])
+            save_checkpoint(case2.checkpoint_path, case2.history_path, checkpoint)
     return tmp_path / "pretrained"
 
 
@@ -125,12 +140,13 @@ def _train_quick_model(folder: Path) -> None:
         spec = PretrainSpec(load_scenario("case1"), "dronefl", preset=preset)
         model = build_model(spec.model, seed=0)
         train_local(model, windows, TrainConfig(epochs=20, batch_size=32, seed=0))
-        settings = spec.settings(folder)
-        save_checkpoint(
-            settings.checkpoint_path,
-            settings.history_path,
-            Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
-        )
+        for gaps in quick_gaps():  # one stand-in for the pretrainings with and without gaps
+            settings = replace(spec, detection_gaps=gaps).settings(folder)
+            save_checkpoint(
+                settings.checkpoint_path,
+                settings.history_path,
+                Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
+            )
 
 
 PR_SET_CHILD_SUBREAPER = 36

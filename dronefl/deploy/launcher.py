@@ -39,7 +39,7 @@ from dronefl.tracking.fusion import (
     planner_track_psd,
 )
 from dronefl.tracking.labels import LABEL_DRONES
-from dronefl.validation import check_one_of
+from dronefl.validation import check_one_of, check_pretrain_gaps
 
 HOST = "127.0.0.1"
 
@@ -73,7 +73,7 @@ class DeployConfig:
     detected_only: bool = False
     coverage_noise: bool = False
     temporal_kernel: bool = False
-    pretrain_gaps: float = 0.0
+    pretrain_gaps: float | str = 0.0
     net_reports: bool = False
     planner_distance: str = "next"
     constant_speed_psd: float | None = None
@@ -99,8 +99,7 @@ class DeployConfig:
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
         check_track_psd("--random-walk-track-psd", self.random_walk_track_psd)
-        if not 0.0 <= self.pretrain_gaps <= 1.0:
-            raise ValueError(f"--pretrain-gaps: must be in [0, 1], got {self.pretrain_gaps}")
+        check_pretrain_gaps(self.pretrain_gaps)
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -119,15 +118,11 @@ def pretrained_model(config: DeployConfig, scenario: Scenario, out: Path) -> Pat
     pretrain`, the one ``dronefl track`` starts from), with its architecture, as a model file
     every process loads by path."""
     from dronefl.deploy.clientapp import save_model
+    from dronefl.experiments.gap_choice import resolved_gaps
     from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 
-    spec = PretrainSpec(
-        scenario,
-        "dronefl",
-        stride=config.stride,
-        preset=config.preset,
-        detection_gaps=config.pretrain_gaps,
-    )
+    spec = PretrainSpec(scenario, "dronefl", stride=config.stride, preset=config.preset)
+    spec = resolved_gaps(spec, config.pretrain_gaps, config.pretrained, progress=False)
     state = pretrained_state(spec, config.pretrained, progress=False)
     path = out / "model" / "pretrained.npz"
     save_model(path, state, 0, spec.model)

@@ -49,6 +49,7 @@ from dronefl.experiments.episode import (
     EpisodeMetrics,
     tracking_metrics,
 )
+from dronefl.experiments.gap_choice import resolved_gaps
 from dronefl.experiments.loop_checkpoint import (
     CHECKPOINT_NAME,
     LoopCheckpoint,
@@ -96,7 +97,7 @@ from dronefl.tracking.fusion import (
 )
 from dronefl.tracking.labels import LABEL_DRONES, training_labels
 from dronefl.tracking.reports import NoiseReporter, detected_now
-from dronefl.validation import check_one_of
+from dronefl.validation import check_one_of, check_pretrain_gaps
 from dronefl.wire import ControlMessage, NoiseReportMessage, PredictionMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
@@ -262,7 +263,9 @@ class TrackConfig:
     labels unchanged); ``pretrain_gaps``: the probability that a crop-field pretraining window
     has a run of its detections hidden, as the orchard's trees hide targets (:attr:`~dronefl.
     experiments.pretrain.PretrainSpec.detection_gaps`; the trajectory predictors only, the
-    image model reads frames; 0: the windows as recorded);
+    image model reads frames; 0: the windows as recorded; ``"auto"``: chosen per scenario on
+    an orchard validation recording, :func:`~dronefl.experiments.gap_choice.
+    choose_detection_gaps`);
     ``preset`` the training
     setting (a key of :data:`dronefl.fl.records.PRESETS`: the model options, batch and
     optimiser of the pretraining and of every update); ``epochs`` local epochs per update and
@@ -298,7 +301,7 @@ class TrackConfig:
     constant_speed_psd: float | None = None
     coverage_noise: bool = False
     temporal_kernel: bool = False
-    pretrain_gaps: float = 0.0
+    pretrain_gaps: float | str = 0.0
     preset: str = "ours"
     epochs: int | None = None
     lr: float | None = None
@@ -329,8 +332,7 @@ class TrackConfig:
             raise ValueError("--net-reports: needs --noise-split reported")
         if self.coverage_noise and self.fusion != "robust":
             raise ValueError("--coverage-noise: needs --fusion robust")
-        if not 0.0 <= self.pretrain_gaps <= 1.0:
-            raise ValueError(f"--pretrain-gaps: must be in [0, 1], got {self.pretrain_gaps}")
+        check_pretrain_gaps(self.pretrain_gaps)
         planner_track_psd(self.scenario, self.track_psd, self.random_walk_track_psd)
         check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
         constant_speed_q(self.constant_speed_psd)
@@ -360,8 +362,10 @@ class TrackConfig:
         return LEARNERS[self.method]
 
     def pretrain_spec(self) -> PretrainSpec:
-        """The crop-field pretraining this episode's models start from."""
-        return PretrainSpec(
+        """The crop-field pretraining this episode's models start from (with ``pretrain_gaps
+        = "auto"`` the probability is chosen first, pretraining the candidates when they are
+        not cached: :func:`~dronefl.experiments.gap_choice.choose_detection_gaps`)."""
+        spec = PretrainSpec(
             self.scenario,
             self.learner.model_kind,
             past_steps=self.past_steps,
@@ -369,8 +373,10 @@ class TrackConfig:
             rounds=self.pretrain_rounds,
             duration=self.pretrain_seconds,
             preset=self.preset,
-            detection_gaps=0.0 if self.learner.model_input == "frames" else self.pretrain_gaps,
         )
+        if self.learner.model_input == "frames":  # the image model reads frames, not windows
+            return spec
+        return resolved_gaps(spec, self.pretrain_gaps, self.pretrained, self.progress)
 
     def describe(self) -> dict[str, str | int | float | bool]:
         """The settings as plain values for ``metrics.json`` (all but ``resume``, which says
