@@ -55,11 +55,19 @@ QUICK_PRESETS = ("ours", "metric-scaffold")
 
 
 def quick_gaps() -> tuple[float, ...]:
-    """The pretraining detection gaps the quick models stand in for: none (the ``ours`` and
-    ``paper`` settings') and the recommended setting's."""
-    from dronefl.experiments.track import RECOMMENDED
+    """The pretraining detection gaps the quick models stand in for: every candidate of
+    ``--pretrain-gaps auto`` (0 is the ``ours`` and ``paper`` settings')."""
+    from dronefl.experiments.gap_choice import GAP_CANDIDATES
 
-    return tuple(sorted({0.0, float(RECOMMENDED["pretrain_gaps"])}))
+    return GAP_CANDIDATES
+
+
+def stand_in_gap_choice(spec, folder: Path) -> None:
+    """Record ``--pretrain-gaps auto``'s choice for ``spec`` in ``folder`` as 0 (the quick
+    models are one model for every candidate; no validation flight is flown for them)."""
+    from dronefl.experiments.gap_choice import GapChoice
+
+    GapChoice(0.0, {}).save(GapChoice.path(spec, folder, quick_gaps()))
 
 
 @pytest.fixture(scope="session")
@@ -103,6 +111,9 @@ def quick_pretrained_case2(quick_pretrained, tmp_path) -> Path:
             state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
             checkpoint = Checkpoint("dronefl", 20, state, [])
             save_checkpoint(case2.checkpoint_path, case2.history_path, checkpoint)
+        stand_in_gap_choice(
+            PretrainSpec(load_scenario("case2"), "dronefl", preset=preset), tmp_path / "pretrained"
+        )
     return tmp_path / "pretrained"
 
 
@@ -147,6 +158,7 @@ def _train_quick_model(folder: Path) -> None:
                 settings.history_path,
                 Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
             )
+        stand_in_gap_choice(spec, folder)
 
 
 PR_SET_CHILD_SUBREAPER = 36

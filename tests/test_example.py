@@ -73,31 +73,3 @@ def test_compare_runs_tabulates_the_shared_seeds_against_the_first_variant(tmp_p
         example.compare({"base": base, "late": _episodes("case2", {5: (1.0, 1.0, 1.0)})})
     with pytest.raises(FileNotFoundError, match="no seed"):
         example.load_variant(tmp_path)
-
-
-def test_window_coverage_scores_every_orchard_window_as_evaluate_does(tmp_path, quick_pretrained):
-    from dronefl.config import load_scenario
-    from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
-    from dronefl.experiments.simulate import simulate
-    from dronefl.models.model import build_model
-    from dronefl.models.train import evaluate
-    from dronefl.models.windows import FEATURE_DIM
-
-    example = _load("window_coverage")
-    case1 = load_scenario("case1")
-    run = tmp_path / "orchard"
-    simulate(case1, environment="orchard", duration=40.0, seed=10, out=run, progress=False,
-             plot=False)  # fmt: skip
-    spec = PretrainSpec(case1, "dronefl", preset="metric-scaffold")
-    data = example.orchard_windows(run, spec, quick_pretrained)
-    state = pretrained_state(spec, quick_pretrained, progress=False)  # the cached quick model
-    errors = example.squared_errors(state, spec, data)
-
-    # Every window of the 40 s (stride 1, L_p -> 1), each scored once, as `evaluate` scores them.
-    assert data.labels.shape[1:] == (1, 2) and errors.shape == (len(data),)
-    model = build_model(spec.model)
-    model.load_state_dict(state)
-    assert errors.mean() == pytest.approx(evaluate(model, data), rel=1e-5)
-    # The orchard hides targets: windows with gaps are there to be scored.
-    counts = (data.features[..., FEATURE_DIM - 1] > 0.5).sum(1)
-    assert counts.min() < 10 and counts.max() == 10

@@ -186,8 +186,10 @@ def test_pretrain_gaps_reach_the_predictors_pretraining_not_the_image_model_s(tm
     # None: no key, as every episode flown before the option.
     assert "pretrain_gaps" not in TrackConfig(scenario, tmp_path).describe()
     assert DeployConfig(scenario="case2", out=tmp_path, pretrain_gaps=0.3).pretrain_gaps == 0.3
-    for bad in (-0.1, 1.5):
-        with pytest.raises(ValueError, match="--pretrain-gaps: must be in"):
+    auto = TrackConfig(scenario, tmp_path, pretrain_gaps="auto")
+    assert auto.describe()["pretrain_gaps"] == "auto"
+    for bad in (-0.1, 1.5, "often"):
+        with pytest.raises(ValueError, match="--pretrain-gaps: must be .auto. or in"):
             TrackConfig(scenario, tmp_path, pretrain_gaps=bad)
-        with pytest.raises(ValueError, match="--pretrain-gaps: must be in"):
+        with pytest.raises(ValueError, match="--pretrain-gaps: must be .auto. or in"):
             DeployConfig(scenario="case2", out=tmp_path, pretrain_gaps=bad)
