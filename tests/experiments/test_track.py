@@ -235,7 +235,7 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
     assert _as_flags(RECOMMENDED) == (  # what `dronefl demo` prints under its table
         "--config metric-scaffold --label-drones others --epochs 1 --noise-split reported "
         "--correct-bias --detected-only --planner-distance rest --constant-speed-psd 0.001 "
-        "--random-walk-track-psd 30.0 --temporal-kernel"
+        "--random-walk-track-psd 30.0 --temporal-kernel --pretrain-gaps auto"
     )
     assert recommended.planner_track_psd == 30.0  # Case 2's random walk: a second filter
     assert recommended.track_fusion_config().temporal_kernel is not None
