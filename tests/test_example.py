@@ -4,6 +4,7 @@ import importlib.util
 from pathlib import Path
 from types import SimpleNamespace
 
+import numpy as np
 import pytest
 
 from dronefl.experiments.episode import EpisodeMetrics
@@ -73,3 +74,16 @@ def test_compare_runs_tabulates_the_shared_seeds_against_the_first_variant(tmp_p
         example.compare({"base": base, "late": _episodes("case2", {5: (1.0, 1.0, 1.0)})})
     with pytest.raises(FileNotFoundError, match="no seed"):
         example.load_variant(tmp_path)
+
+
+def test_episode_parity_counts_the_leading_steps_equal_to_the_bit():
+    equal_steps = _load("episode_parity").equal_steps
+    a = np.array([[1.0, np.nan], [2.0, 3.0], [4.0, 5.0]])
+    b = a.copy()
+    assert equal_steps(a, b) == 3  # NaN where both have NaN counts as equal
+    b[1, 1] = np.nextafter(3.0, 4.0)  # one bit
+    assert equal_steps(a, b) == 1
+    b[0, 1] = 0.0
+    assert equal_steps(a, b) == 0
+    with pytest.raises(ValueError, match="shapes differ"):
+        equal_steps(a, a[:2])
