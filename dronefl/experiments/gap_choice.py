@@ -34,6 +34,7 @@ from dronefl.io import atomic_write_json
 from dronefl.logs import load_run
 from dronefl.models.model import build_model
 from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels
+from dronefl.results import ResultError
 from dronefl.validation import check_pretrain_gaps
 
 #: ``--pretrain-gaps auto``: the detection-gap probabilities a scenario's pretraining chooses
@@ -109,8 +110,15 @@ class GapChoice:
 
     @classmethod
     def load(cls, path: Path) -> GapChoice:
-        raw = json.loads(Path(path).read_text())
-        return cls(float(raw["chosen"]), {float(p): float(v) for p, v in raw["mse"].items()})
+        """The choice saved in ``path`` (:class:`~dronefl.results.ResultError` naming the file
+        when it is not one)."""
+        try:
+            raw = json.loads(Path(path).read_text())
+            return cls(float(raw["chosen"]), {float(p): float(v) for p, v in raw["mse"].items()})
+        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+            raise ResultError(
+                f"{path}: not a detection-gap choice ({exc}); delete it to choose again"
+            ) from None
 
 
 def choose_detection_gaps(

@@ -22,6 +22,7 @@ from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
 from dronefl.models.model import build_model
 from dronefl.models.train import evaluate
 from dronefl.models.windows import FEATURE_DIM
+from dronefl.results import ResultError
 
 CASE1 = load_scenario("case1")
 
@@ -69,6 +70,10 @@ def test_the_better_candidate_is_chosen_the_smaller_on_a_tie_and_the_choice_is_c
     assert resolved_gaps(spec, 0.15, tmp_path).detection_gaps == 0.15
     with pytest.raises(ValueError, match="--pretrain-gaps: must be 'auto' or in"):
         resolved_gaps(spec, "often", tmp_path)
+    corrupt = GapChoice.path(spec, tmp_path / "a", gap_choice.GAP_CANDIDATES)
+    corrupt.write_text('{"chosen": 0.3')
+    with pytest.raises(ResultError, match="not a detection-gap choice"):
+        choose_detection_gaps(spec, tmp_path / "a", progress=False)
     with pytest.raises(ValueError, match="ascending"):
         choose_detection_gaps(spec, tmp_path, candidates=(0.3, 0.0))
 
