@@ -97,8 +97,10 @@ def test_every_method_flies_the_custom_scenario(table_dir, method):
 def test_pretraining_filled_the_empty_cache_once_per_kind(table_dir):
     folder = table_dir / "pretrained" / "farm_5x8"
     kinds = sorted(p.name.split("-")[0] for p in folder.iterdir() if not p.name.startswith("data"))
-    assert kinds == ["centralized", "dronefl"]
-    assert len(list(folder.glob("data-*"))) == 1  # one recording shared by both
+    # --pretrain-gaps auto: DroneFL's model at both candidates, the orchard validation flight
+    # and the choice; the centralized model once, at the chosen probability.
+    assert kinds == ["centralized", "dronefl", "dronefl", "gaps", "orchard"]
+    assert len(list(folder.glob("data-*"))) == 1  # one recording shared by all
 
 
 def test_table1_reuses_the_finished_episodes(table_dir):

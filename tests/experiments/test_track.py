@@ -218,9 +218,11 @@ def test_the_preset_sets_the_episode_models_and_their_updates(tmp_path):
     assert learner.settings.model == large and learner.settings.optimizer == "sgd"
 
 
-def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_path):
+def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(
+    tmp_path, quick_pretrained_case2
+):
     case2 = load_scenario("case2")
-    recommended = TrackConfig(case2, tmp_path, **RECOMMENDED)
+    recommended = TrackConfig(case2, tmp_path, pretrained=quick_pretrained_case2, **RECOMMENDED)
     assert (
         recommended.preset,
         recommended.label_drones,
@@ -239,7 +241,12 @@ def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(tmp_p
     )
     assert recommended.planner_track_psd == 30.0  # Case 2's random walk: a second filter
     assert recommended.track_fusion_config().temporal_kernel is not None
-    assert recommended.pretrain_spec().preset == "metric-scaffold"
+    spec = recommended.pretrain_spec()  # the quick models' stand-in choice: no gaps
+    assert (spec.preset, recommended.pretrain_gaps, spec.detection_gaps) == (
+        "metric-scaffold",
+        "auto",
+        0.0,
+    )
     default = TrackConfig(case2, tmp_path)  # the paper's online setting
     assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
     assert default.noise_split == "adaptive" and not default.correct_bias
