@@ -2,7 +2,8 @@
 
 Compares the ``episode.npz`` of two folders (e.g. ``dronefl deploy up`` against ``dronefl
 track`` with the same scenario, seed and setting, or one episode flown twice), array by array
-(every drone's predictions, the fused tracks, Tr P, the planner's cost): the number of steps
+(which predictions were sent, and those predictions, the fused tracks, Tr P, the planner's
+cost): the number of steps
 equal to the bit from the start and the first step that differs, then the closing metrics of
 both (``metrics.json``)::
 
@@ -47,8 +48,15 @@ def main() -> None:
     parser.add_argument("second", type=Path, help="the other flight of the same episode")
     args = parser.parse_args()
     with np.load(args.first / "episode.npz") as a, np.load(args.second / "episode.npz") as b:
+        print(
+            f"{'sent':13s} {equal_steps(a['sent'], b['sent']):5d} of {len(a['sent'])} steps equal"
+        )
         for name, key in ARRAYS.items():
-            steps = equal_steps(a[key], b[key])
+            first, second = a[key], b[key]
+            if key == "prediction":  # a deployment's cloud knows only what was sent to it
+                sent = (a["sent"] | b["sent"])[..., None]
+                first, second = np.where(sent, first, np.nan), np.where(sent, second, np.nan)
+            steps = equal_steps(first, second)
             where = "all" if steps == len(a[key]) else f"first differs at step {steps}"
             print(f"{name:13s} {steps:5d} of {len(a[key])} steps equal to the bit ({where})")
     metrics = [
