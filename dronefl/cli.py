@@ -710,16 +710,18 @@ PretrainGapsOption = Annotated[
 def _pretrain_gaps(value: str | None) -> float | str | None:
     """``--pretrain-gaps`` as the configurations take it: ``"auto"``, a probability, or
     ``None`` (not given); a clear error otherwise."""
+    from dronefl.validation import check_pretrain_gaps
+
     if value is None or value == "auto":
         return value
     try:
-        gaps = float(value)
+        gaps: float | str = float(value)
     except ValueError:
-        raise fail(
-            f"--pretrain-gaps: must be 'auto' or a number in [0, 1], got {value!r}"
-        ) from None
-    if not 0.0 <= gaps <= 1.0:
-        raise fail(f"--pretrain-gaps: must be 'auto' or in [0, 1], got {value}")
+        gaps = value  # not a number: refused below, with the configurations' message
+    try:
+        check_pretrain_gaps(gaps)
+    except ValueError as exc:
+        raise fail(str(exc)) from None
     return gaps
 
 

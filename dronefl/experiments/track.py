@@ -62,7 +62,7 @@ from dronefl.fl.records import PRESETS, WEIGHT_DTYPES
 from dronefl.fl.simulation import run_session
 from dronefl.learners import LEARNERS, Learner, LearnerSetup
 from dronefl.learners.federated import session_settings
-from dronefl.models.model import build_model, count_parameters
+from dronefl.models.model import PredictorConfig, build_model, count_parameters
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.perception import make_detector
@@ -371,7 +371,19 @@ class TrackConfig:
         """The crop-field pretraining this episode's models start from (with ``pretrain_gaps
         = "auto"`` the probability is chosen first, pretraining the candidates when they are
         not cached: :func:`~dronefl.experiments.gap_choice.choose_detection_gaps`)."""
-        spec = PretrainSpec(
+        spec = self._pretraining()
+        if self.learner.model_input == "frames":  # the image model reads frames, not windows
+            return spec
+        return resolved_gaps(spec, self.pretrain_gaps, self.pretrained, self.progress)
+
+    @property
+    def predictor_model(self) -> PredictorConfig:
+        """The architecture of the trajectory predictor the episode flies (the same for every
+        detection-gap probability, so reading it chooses nothing)."""
+        return self._pretraining().model
+
+    def _pretraining(self) -> PretrainSpec:
+        return PretrainSpec(
             self.scenario,
             self.learner.model_kind,
             past_steps=self.past_steps,
@@ -380,9 +392,6 @@ class TrackConfig:
             duration=self.pretrain_seconds,
             preset=self.preset,
         )
-        if self.learner.model_input == "frames":  # the image model reads frames, not windows
-            return spec
-        return resolved_gaps(spec, self.pretrain_gaps, self.pretrained, self.progress)
 
     def describe(self) -> dict[str, str | int | float | bool]:
         """The settings as plain values for ``metrics.json`` (all but ``resume``, which says
@@ -548,7 +557,7 @@ class ClosedLoop:
         self.frames_in = learner.model_input == "frames"  # the learner predicts from frames
         self.predictors: dict[int, TrajectoryPredictor] = {}
         if not self.frames_in:
-            self.model_config = config.pretrain_spec().model
+            self.model_config = config.predictor_model
             shared = self._predictor(state)
             self.predictors = {d.id: shared for d in scenario.drones}
         self.world = saved.world if saved else World(scenario, config.environment, config.seed)

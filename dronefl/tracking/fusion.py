@@ -55,6 +55,19 @@ COVERAGE_NOISE_PROFILE: tuple[float, ...] = (
 TEMPORAL_KERNEL: tuple[float, ...] = (1.4806, -0.5331, -0.0056, -0.1841, 0.2422)
 
 
+def _finite_numbers(name: str, values: object, positive: bool) -> tuple[float, ...]:
+    """``values`` (a tuple, or a list when read back from JSON) as a tuple of floats;
+    ``ValueError`` naming ``name`` unless it is a non-empty sequence of finite (and, with
+    ``positive``, positive) numbers."""
+    numbers = tuple(values)
+    if not numbers or not all(
+        isinstance(v, int | float) and math.isfinite(v) and (v > 0 or not positive) for v in numbers
+    ):
+        kind = "positive finite factors" if positive else "finite weights"
+        raise ValueError(f"{name}: must be {kind}, got {values!r}")
+    return tuple(float(v) for v in numbers)
+
+
 @dataclass(frozen=True)
 class FusionConfig:
     """Settings of the cloud fusion (SPEC §6).
@@ -161,27 +174,15 @@ class FusionConfig:
         if self.noise_split == "reported" and self.method != "robust":
             raise ValueError("noise_split: 'reported' needs the robust fusion method")
         if self.coverage_noise is not None:
-            scales = tuple(self.coverage_noise)  # a list when read back from JSON
-            if not scales or not all(
-                isinstance(v, int | float) and math.isfinite(v) and v > 0 for v in scales
-            ):
-                raise ValueError(
-                    f"coverage_noise: must be positive finite factors, got {self.coverage_noise!r}"
-                )
+            scales = _finite_numbers("coverage_noise", self.coverage_noise, positive=True)
             if self.method != "robust":
                 raise ValueError("coverage_noise: needs the robust fusion method")
-            object.__setattr__(self, "coverage_noise", tuple(float(v) for v in scales))
+            object.__setattr__(self, "coverage_noise", scales)
         if self.temporal_kernel is not None:
-            weights = tuple(self.temporal_kernel)  # a list when read back from JSON
-            if not weights or not all(
-                isinstance(v, int | float) and math.isfinite(v) for v in weights
-            ):
-                raise ValueError(
-                    f"temporal_kernel: must be finite weights, got {self.temporal_kernel!r}"
-                )
+            weights = _finite_numbers("temporal_kernel", self.temporal_kernel, positive=False)
             if abs(sum(weights) - 1.0) > 1e-9:
                 raise ValueError(f"temporal_kernel: the weights must sum to 1, got {sum(weights)}")
-            object.__setattr__(self, "temporal_kernel", tuple(float(v) for v in weights))
+            object.__setattr__(self, "temporal_kernel", weights)
         for name in ("gate", "consensus_gate"):
             value = getattr(self, name)
             if value is not None and not value > 0:

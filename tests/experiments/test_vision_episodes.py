@@ -77,7 +77,7 @@ def test_every_method_flies_a_vision_episode(vision_pretrained, tmp_path, method
     else:
         assert saved["model_input"] == "boxes"
         assert saved["model_parameters"] == count_parameters(
-            build_model(config.pretrain_spec().model)
+            build_model(config.predictor_model)
         )
     if method.startswith("centralized"):
         # Per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry up, the
