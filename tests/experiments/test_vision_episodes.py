@@ -76,9 +76,7 @@ def test_every_method_flies_a_vision_episode(vision_pretrained, tmp_path, method
         assert "no detector" in metrics.centralized_inputs
     else:
         assert saved["model_input"] == "boxes"
-        assert saved["model_parameters"] == count_parameters(
-            build_model(config.predictor_model)
-        )
+        assert saved["model_parameters"] == count_parameters(build_model(config.predictor_model))
     if method.startswith("centralized"):
         # Per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry up, the
         # controls down; no predictions travel (the cloud predicts).
