@@ -3,7 +3,6 @@ exits with code 2 and one line naming the bad file/field on bad input."""
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
 import sys
@@ -32,6 +31,7 @@ from dronefl.validation import check_one_of
 
 if TYPE_CHECKING:
     from dronefl.experiments.track import TrackConfig
+    from dronefl.settings import Setting
 
 app = typer.Typer(
     add_completion=False,
@@ -82,6 +82,28 @@ def writable_folder(out: Path) -> Path:
 OutOption = Annotated[
     Path, typer.Option("--out", "-o", help="Run folder to write.", callback=writable_folder)
 ]
+
+
+SettingOption = Annotated[
+    str,
+    typer.Option(
+        "--setting", help="recommended | paper | a TOML file (see `dronefl setting show`)."
+    ),
+]
+SetOption = Annotated[
+    list[str] | None,
+    typer.Option("--set", help="One setting field, section.field=value (repeatable)."),
+]
+
+
+def _setting(name: str, overrides: list[str] | None) -> Setting:
+    """The setting ``name`` (or file) with ``overrides``; one line and exit 2 when bad."""
+    from dronefl.settings import Setting, SettingError
+
+    try:
+        return Setting.load(name, overrides or ())
+    except SettingError as exc:
+        raise fail(str(exc)) from None
 
 
 def check_choice(value: str | None, choices: tuple[str, ...], option: str) -> None:
@@ -153,62 +175,36 @@ def demo(
 ) -> None:
     """The default experiment: closed-loop tracking of Case 2 in the orchard, DroneFL (an FL
     round every 100 s) beside fixed distributed models, both pretrained in the crop field, in
-    the recommended setting (--config metric-scaffold --label-drones others --epochs 1
-    --noise-split reported --correct-bias --detected-only --planner-distance rest
-    --constant-speed-psd 0.001 --random-walk-track-psd 30; the last two act on Cases 1 and 3
-    and on Case 2 only), for 600 s:
-    seed 0 of the README's Table I row of that setting.
+    the recommended setting, for 600 s: seed 0 of the README's Table I row of that setting.
 
     Example: dronefl demo --out runs/demo
     """
-    from dronefl.experiments.track import RECOMMENDED, run_episode
+    from dronefl.experiments.track import run_episode
     from dronefl.report.tables import comparison
 
     spec = load_scenario(scenario)
+    setting = _setting("recommended", [])
     results = []
     for method in ("fixed", "dronefl"):
         config = _track_config(
-            scenario=spec,
-            method=method,
-            seed=0,
-            duration=duration,
-            out=out / method,
-            pretrained=out / "pretrained",
-            **RECOMMENDED,
-        )
+            scenario=spec, setting=setting, method=method, seed=0, duration=duration,
+            out=out / method, pretrained=out / "pretrained",
+        )  # fmt: skip
         results.append(run_episode(config))
     typer.echo(comparison(results))
     typer.echo(
-        f"setting: recommended ({_as_flags(RECOMMENDED)}; chosen on tuning seeds >= 10; "
-        "docs/closed_loop.md)"
+        f"setting: recommended (digest {setting.digest()}; `dronefl setting show recommended` "
+        "prints it; docs/closed_loop.md)"
     )
     typer.echo(
         f"wrote {out}/<method>/ (metrics.json, trajectories.png, timeseries.png, episode.gif)"
     )
 
 
-def _as_flags(setting: dict[str, str | int | float | bool]) -> str:
-    """``TrackConfig`` fields as the ``track`` options that set them (``preset`` is
-    ``--config``; a true flag alone, a false one left out)."""
-    flags = []
-    for name, value in setting.items():
-        flag = "--" + {"preset": "config"}.get(name, name).replace("_", "-")
-        if value is True:
-            flags.append(flag)
-        elif value is not False:
-            flags.append(f"{flag} {value}")
-    return " ".join(flags)
-
-
 RoundsOption = Annotated[int, typer.Option("--rounds", help="Global FL rounds.")]
 StrideOption = Annotated[int, typer.Option("--stride", help="Samples between training windows.")]
 ResumeOption = Annotated[
     bool, typer.Option("--resume", help="Continue finished work and checkpoints in --out.")
-]
-
-
-WeightsDtypeOption = Annotated[
-    str, typer.Option("--weights-dtype", help="Model weights on the wire: float32|float16.")
 ]
 
 
@@ -226,20 +222,6 @@ FlScenarioOption = Annotated[
     str | None,
     typer.Option("--scenario", "-s", help="Built-in scenario (case1|case2|case3) or YAML path."),
 ]
-CaseOption = Annotated[
-    int | None, typer.Option("--case", help="Paper case 1, 2 or 3 (same as --scenario caseN).")
-]
-PresetOption = Annotated[
-    str | None,
-    typer.Option(
-        "--config",
-        help="Training setting: ours (the closed loop's) | paper (E=10, Adam 1e-3) | metric "
-        "(ours + box sizes x altitude, batch 64) | metric-sgd (metric with SGD, lr 3e-4) | "
-        "metric-scaffold (metric-sgd with SCAFFOLD's drift correction) | "
-        "metric-scaffold-step (metric-scaffold with lr x 0.1 in the last fifth of the rounds) | "
-        "metric-scaffold-step-lr6e-4 (metric-scaffold-step with lr 6e-4).",
-    ),
-]
 
 
 def _parse_seeds(text: str) -> tuple[int, ...]:
@@ -252,13 +234,7 @@ def _parse_seeds(text: str) -> tuple[int, ...]:
     return seeds
 
 
-def _scenario_name(scenario: str | None, case: int | None, default: str) -> str:
-    if scenario is not None and case is not None:
-        raise fail("--scenario and --case name the same thing; give one")
-    if case is not None:
-        if case not in (1, 2, 3):
-            raise fail(f"--case: must be 1, 2 or 3, got {case}")
-        return f"case{case}"
+def _scenario_name(scenario: str | None, default: str) -> str:
     name = scenario or default
     load_scenario(name)  # a bad name or file fails here, before any work
     return name
@@ -275,7 +251,6 @@ def _summary_line(method: str, block) -> str:
 @app.command("fl-offline")
 def fl_offline(
     scenario: FlScenarioOption = None,
-    case: CaseOption = None,
     rounds: RoundsOption = 50,
     seeds: SeedsOption = "0 1 2 3 4",
     out: OutOption = Path("runs/fl_offline"),
@@ -284,51 +259,27 @@ def fl_offline(
     ] = "fedavg,fedprox,fedper,dronefl,centralized,centralized-small,local",
     duration: Annotated[float, typer.Option(help="Simulated seconds recorded.")] = 600.0,
     stride: StrideOption = 10,
-    mu: Annotated[float, typer.Option("--mu", help="FedProx proximal weight mu.")] = 0.01,
-    preset: PresetOption = "ours",
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     resume: ResumeOption = False,
-    weights_dtype: WeightsDtypeOption = "float32",
-    epochs: Annotated[
-        int | None, typer.Option(help="Local epochs per round E (default: the --config's).")
-    ] = None,
-    aggregation: Annotated[
-        str, typer.Option(help="Cloud aggregation: mean (FedAvg)|median|trimmed-mean|krum.")
-    ] = "mean",
-    round_timeout: Annotated[
-        float,
-        typer.Option(help="Seconds the cloud waits for the drones in a round (not the first)."),
-    ] = 3600.0,
     faults: Annotated[
         str, typer.Option(help="Injected drone faults ROUND:DRONE:KIND,... (dronefl.fl.faults).")
     ] = "",
 ) -> None:
-    """Offline FL (paper Fig. 5): record the scenario per seed, train every method, plot and
-    tabulate (mean +- std over seeds).
+    """Offline FL (paper Fig. 5): record the scenario per seed, train every method as the
+    setting's [model] and [training] say, plot and tabulate (mean +- std over seeds).
 
     Example: dronefl fl-offline --scenario case2 --rounds 50 --seeds "0 1 2" --out runs/fl/case2
     """
     from dronefl.experiments.fl_offline import OfflineConfig, run_fl_offline
     from dronefl.models.model import parameter_summary
 
-    name = _scenario_name(scenario, case, "case1")
+    name = _scenario_name(scenario, "case1")
     try:
         config = OfflineConfig(
-            name,
-            out,
-            rounds,
-            _parse_seeds(seeds),
-            duration,
-            stride,
-            mu,
-            tuple(methods.split(",")),
-            preset,
-            resume,
-            weights_dtype=weights_dtype,
-            epochs=epochs,
-            aggregation=aggregation,
-            round_timeout=round_timeout,
-            faults=faults,
-        )
+            name, out, _setting(setting, set_), rounds, _parse_seeds(seeds), duration, stride,
+            tuple(methods.split(",")), resume, faults=faults,
+        )  # fmt: skip
         typer.echo(parameter_summary())
         results = run_fl_offline(config)
     except _fl_errors() as exc:
@@ -353,9 +304,9 @@ def fl_compare(
 
     Example: dronefl fl-compare runs/fl_step/case3/results.json dronefl local
     """
-    from dronefl.experiments.fl_offline import OfflineResults
     from dronefl.fl.checkpoint import CheckpointError
     from dronefl.report.paired import paired_comparison, paired_markdown
+    from dronefl.results.fl import OfflineResults
 
     try:
         first = OfflineResults.load(results)
@@ -418,7 +369,8 @@ def fl_ablation(
     seeds: SeedsOption = "0 1 2 3 4",
     out: OutOption = Path("runs/fl_ablation"),
     stride: StrideOption = 10,
-    preset: PresetOption = "ours",
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     resume: ResumeOption = False,
 ) -> None:
     """DroneFL without AdaIN and without relative positions, on each scenario.
@@ -428,9 +380,10 @@ def fl_ablation(
     """
     from dronefl.experiments.fl_offline import run_ablation
 
-    names = tuple(_scenario_name(n, None, n) for n in scenario.split(","))
+    names = tuple(_scenario_name(n, n) for n in scenario.split(","))
     try:
-        run_ablation(out, names, rounds, _parse_seeds(seeds), stride, preset, resume)
+        chosen = _setting(setting, set_)
+        run_ablation(out, names, rounds, _parse_seeds(seeds), stride, chosen, resume)
     except _fl_errors() as exc:
         raise fail(str(exc)) from None
     typer.echo((out / "ablation.md").read_text())
@@ -485,7 +438,8 @@ def fl_altitude(
         str, typer.Option(help="Comma-separated methods.")
     ] = "dronefl-no-adain,dronefl",
     stride: StrideOption = 10,
-    preset: PresetOption = "ours",
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     resume: ResumeOption = False,
 ) -> None:
     """Altitude motivation study (paper Fig. 4): drone 1's test MSE per round with drone 2 at
@@ -495,7 +449,7 @@ def fl_altitude(
     """
     from dronefl.experiments.fl_offline import run_altitude_study
 
-    name = _scenario_name(scenario, None, "case1")
+    name = _scenario_name(scenario, "case1")
     try:
         study = run_altitude_study(
             out,
@@ -504,7 +458,7 @@ def fl_altitude(
             _parse_seeds(seeds),
             stride,
             tuple(methods.split(",")),
-            preset,
+            _setting(setting, set_),
             resume,
         )
     except _fl_errors() as exc:
@@ -638,191 +592,12 @@ def detector_figures(
 TrackMethod = Annotated[
     str,
     typer.Option(
-        "--method",
-        help="centralized|fixed|dronefl|centralized-image (the paper's image baseline; needs "
-        "--detector yolo).",
+        "--method", help="dronefl|fixed|centralized|centralized-image (needs --detector yolo)."
     ),
 ]
 PretrainedOption = Annotated[
     Path, typer.Option(help="Cache of pretrained models.", callback=writable_folder)
 ]
-LabelsOption = Annotated[
-    str | None,
-    typer.Option(
-        "--labels", help="Training labels: smoothed (fused tracks, RTS) | filtered | ground_truth."
-    ),
-]
-FusionOption = Annotated[str | None, typer.Option("--fusion", help="Cloud fusion: robust | paper.")]
-NoiseSplitOption = Annotated[
-    str | None,
-    typer.Option(
-        "--noise-split",
-        help="adaptive | reported: the drones send their own noise estimates, by which the "
-        "robust fusion shares two drones' adapted R.",
-    ),
-]
-CorrectBiasOption = Annotated[
-    bool | None,
-    typer.Option(
-        "--correct-bias/--no-correct-bias",
-        help="Each drone subtracts the running mean of its forecast residual (prediction "
-        "against its next detection, back-projected) from the predictions it sends.",
-    ),
-]
-DetectedOnlyOption = Annotated[
-    bool | None,
-    typer.Option(
-        "--detected-only/--no-detected-only",
-        help="Each drone sends a target's prediction only at the steps it detects that target "
-        "(it still predicts the others; they count in the prediction error).",
-    ),
-]
-CoverageNoiseOption = Annotated[
-    bool | None,
-    typer.Option(
-        "--coverage-noise/--no-coverage-noise",
-        help="The fusion scales R of a prediction made from a window with few detections (the "
-        "drone sent that target on n of the last 10 steps) by the measured profile "
-        "(COVERAGE_NOISE_PROFILE: ~9.5x for n <= 5, 2.2x for n = 9).",
-    ),
-]
-TemporalKernelOption = Annotated[
-    bool | None,
-    typer.Option(
-        "--temporal-kernel/--no-temporal-kernel",
-        help="With random-walk targets: the fused tracks the planner flies on are a 5-tap "
-        "kernel over the drones' last predictions (TEMPORAL_KERNEL, fitted in the crop "
-        "field); the labels unchanged.",
-    ),
-]
-PretrainGapsOption = Annotated[
-    str | None,
-    typer.Option(
-        "--pretrain-gaps",
-        help="Probability that a crop-field pretraining window has a run of its detections "
-        "hidden, as the orchard's trees hide targets (the trajectory predictors; 0: the "
-        "windows as recorded), or 'auto': per scenario the better of 0 and 0.3 on an orchard "
-        "validation recording (seed 1001).",
-    ),
-]
-
-
-def _pretrain_gaps(value: str | None) -> float | str | None:
-    """``--pretrain-gaps`` as the configurations take it: ``"auto"``, a probability, or
-    ``None`` (not given); a clear error otherwise."""
-    from dronefl.validation import check_pretrain_gaps
-
-    if value is None or value == "auto":
-        return value
-    try:
-        gaps: float | str = float(value)
-    except ValueError:
-        gaps = value  # not a number: refused below, with the configurations' message
-    try:
-        check_pretrain_gaps(gaps)
-    except ValueError as exc:
-        raise fail(str(exc)) from None
-    return gaps
-
-
-NetReportsOption = Annotated[
-    bool,
-    typer.Option(
-        "--net-reports",
-        help="With --noise-split reported: each drone reports its prediction noise net of its "
-        "detections' own projection noise (estimated from their second differences).",
-    ),
-]
-TrackPsdOption = Annotated[
-    float | None,
-    typer.Option(
-        "--track-psd",
-        help="Process noise q (m^2/s^3) of a second filter whose tracks the planner flies on; "
-        "the labels keep the fusion's (default: one filter for both).",
-    ),
-]
-PlannerDistanceOption = Annotated[
-    str | None,
-    typer.Option(
-        "--planner-distance",
-        help="Where the planner's distance term measures a drone: next (the paper: its next "
-        "position) | rest (where it would come to rest under full braking, which ends "
-        "orbiting).",
-    ),
-]
-ConstantSpeedPsdOption = Annotated[
-    float | None,
-    typer.Option(
-        "--constant-speed-psd",
-        help="The fusion's process noise q (m^2/s^3) for constant-speed targets (Cases 1 and "
-        "3; random-walk targets keep theirs): 0.1 (ours, paper) | 0.001 (recommended, chosen "
-        "by replay on tuning seeds).",
-    ),
-]
-RandomWalkTrackPsdOption = Annotated[
-    float | None,
-    typer.Option(
-        "--random-walk-track-psd",
-        help="As --track-psd, for a scenario with random-walk targets only (Case 2; Cases 1 "
-        "and 3 keep one filter): 30 (recommended, chosen on tuning seeds) | unset: one filter.",
-    ),
-]
-EpochsOption = Annotated[
-    int | None,
-    typer.Option(
-        "--epochs", min=1, help="Local epochs per model update (default: the --config's)."
-    ),
-]
-LrOption = Annotated[
-    float | None,
-    typer.Option("--lr", help="Learning rate of the model updates (default: the --config's)."),
-]
-LabelDronesOption = Annotated[
-    str | None,
-    typer.Option(
-        "--label-drones",
-        help="Who learns from a label: all | others (another drone saw the target then) | "
-        "lower (a lower drone did).",
-    ),
-]
-DeshrinkOption = Annotated[
-    bool,
-    typer.Option(
-        "--deshrink-labels",
-        help="Push each drone's labels away from it by the pull its predictions show.",
-    ),
-]
-PretrainRoundsOption = Annotated[
-    int, typer.Option("--pretrain-rounds", help="FL rounds of the crop-field pretraining.")
-]
-PretrainSecondsOption = Annotated[
-    float, typer.Option("--pretrain-seconds", help="Seconds of crop field recorded to pretrain.")
-]
-
-
-SettingOption = Annotated[
-    str,
-    typer.Option(
-        "--setting",
-        help="Named closed-loop setting: recommended (make demo's, the default) | ours (the "
-        "paper's online setting on our model) | paper (the paper's system as written: its "
-        "training, filtered-track labels, plain adaptive EKF, its planner's J). It sets "
-        "--config, --labels, --fusion, --label-drones, --epochs, --noise-split, "
-        "--correct-bias, --detected-only, --planner-distance and --constant-speed-psd; each of "
-        "them given beside it wins.",
-    ),
-]
-
-
-def _setting(setting: str, **chosen: str | int | bool | None) -> dict:
-    """The fields of named ``setting`` with the options given on the command line (not
-    ``None``) in their place (:func:`dronefl.experiments.track.setting_fields`)."""
-    from dronefl.experiments.track import setting_fields
-
-    try:
-        return setting_fields(setting, **chosen)
-    except ValueError as exc:
-        raise fail(str(exc)) from None
 
 
 def _track_config(**kwargs: object) -> TrackConfig:
@@ -842,31 +617,9 @@ def track(
     duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 600.0,
     env: Annotated[str, typer.Option("--env", help="Deployment environment.")] = "orchard",
     detector: Annotated[str, typer.Option(help="projection|yolo")] = "projection",
-    fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     setting: SettingOption = "recommended",
-    labels: LabelsOption = None,
-    label_drones: LabelDronesOption = None,
-    deshrink_labels: DeshrinkOption = False,
-    fusion: FusionOption = None,
-    noise_split: NoiseSplitOption = None,
-    correct_bias: CorrectBiasOption = None,
-    detected_only: DetectedOnlyOption = None,
-    coverage_noise: CoverageNoiseOption = None,
-    temporal_kernel: TemporalKernelOption = None,
-    pretrain_gaps: PretrainGapsOption = None,
-    net_reports: NetReportsOption = False,
-    track_psd: TrackPsdOption = None,
-    planner_distance: PlannerDistanceOption = None,
-    constant_speed_psd: ConstantSpeedPsdOption = None,
-    random_walk_track_psd: RandomWalkTrackPsdOption = None,
-    past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
-    preset: PresetOption = None,
-    epochs: EpochsOption = None,
-    lr: LrOption = None,
-    weights_dtype: WeightsDtypeOption = "float32",
+    set_: SetOption = None,
     pretrained: PretrainedOption = Path("runs/pretrained"),
-    pretrain_rounds: PretrainRoundsOption = 20,
-    pretrain_seconds: PretrainSecondsOption = 600.0,
     out: OutOption = Path("runs/track"),
     animate: Annotated[bool, typer.Option(help="Also write episode.gif.")] = True,
     resume: ResumeOption = False,
@@ -874,56 +627,20 @@ def track(
     """Closed-loop tracking: detect, predict, fuse, plan every 0.2 s; an FL round every 100 s.
 
     Writes metrics.json, episode.npz, trajectories.png, timeseries.png and episode.gif, and a
-    checkpoint.pkl after every FL period (--resume continues a killed episode from it).
-    --setting recommended (the default, make demo's) | ours | paper names every knob at once;
-    options given beside it win (e.g. --setting paper --fusion robust).
-    Example: dronefl track --scenario case2 --method dronefl --seed 0 --duration 600 --out runs/c2
+    checkpoint after every FL period (--resume continues a killed episode from it). Every
+    knob of the method is in the setting (--setting, --set).
+    Example: dronefl track --scenario case2 --setting paper --set learning.period=50 --out runs/c2
     """
     from dronefl.experiments.track import run_episode
     from dronefl.fl.checkpoint import CheckpointError
     from dronefl.report.tables import format_metrics
-    from dronefl.results import ResultError
+    from dronefl.serialize import ResultError
 
-    check_choice(env, ENVIRONMENTS, "--env")
-    check_choice(detector, DETECTORS, "--detector")
     config = _track_config(
-        scenario=load_scenario(scenario),
-        method=method,
-        seed=seed,
-        duration=duration,
-        environment=env,
-        detector=detector,
-        fl_period=fl_period,
-        **_setting(
-            setting,
-            preset=preset,
-            labels=labels,
-            fusion=fusion,
-            label_drones=label_drones,
-            epochs=epochs,
-            noise_split=noise_split,
-            correct_bias=correct_bias,
-            detected_only=detected_only,
-            planner_distance=planner_distance,
-            constant_speed_psd=constant_speed_psd,
-            random_walk_track_psd=random_walk_track_psd,
-            coverage_noise=coverage_noise,
-            temporal_kernel=temporal_kernel,
-            pretrain_gaps=_pretrain_gaps(pretrain_gaps),
-        ),
-        deshrink_labels=deshrink_labels,
-        net_reports=net_reports,
-        track_psd=track_psd,
-        past_steps=past_steps,
-        lr=lr,
-        weights_dtype=weights_dtype,
-        pretrained=pretrained,
-        pretrain_rounds=pretrain_rounds,
-        pretrain_seconds=pretrain_seconds,
-        out=out,
-        animate=animate,
-        resume=resume,
-    )
+        scenario=load_scenario(scenario), setting=_setting(setting, set_), method=method,
+        seed=seed, duration=duration, environment=env, detector=detector,
+        pretrained=pretrained, out=out, animate=animate, resume=resume,
+    )  # fmt: skip
     try:
         metrics = run_episode(config)
     except (CheckpointError, ResultError) as exc:  # a corrupt or foreign file in --out
@@ -971,30 +688,9 @@ def table1(
     detector: Annotated[
         str, typer.Option(help="projection|yolo (yolo: every drone's frame rendered each step).")
     ] = "projection",
-    fl_period: Annotated[float, typer.Option(help="Seconds between FL rounds.")] = 100.0,
     setting: SettingOption = "recommended",
-    labels: LabelsOption = None,
-    label_drones: LabelDronesOption = None,
-    deshrink_labels: DeshrinkOption = False,
-    fusion: FusionOption = None,
-    noise_split: NoiseSplitOption = None,
-    correct_bias: CorrectBiasOption = None,
-    detected_only: DetectedOnlyOption = None,
-    coverage_noise: CoverageNoiseOption = None,
-    temporal_kernel: TemporalKernelOption = None,
-    pretrain_gaps: PretrainGapsOption = None,
-    net_reports: NetReportsOption = False,
-    track_psd: TrackPsdOption = None,
-    planner_distance: PlannerDistanceOption = None,
-    constant_speed_psd: ConstantSpeedPsdOption = None,
-    random_walk_track_psd: RandomWalkTrackPsdOption = None,
-    preset: PresetOption = None,
-    epochs: EpochsOption = None,
-    lr: LrOption = None,
-    weights_dtype: WeightsDtypeOption = "float32",
+    set_: SetOption = None,
     pretrained: PretrainedOption = Path("runs/pretrained"),
-    pretrain_rounds: PretrainRoundsOption = 20,
-    pretrain_seconds: PretrainSecondsOption = 600.0,
     label_ablation: Annotated[
         bool,
         typer.Option(
@@ -1008,8 +704,7 @@ def table1(
     """Table I: every scenario x method x seed; markdown, CSV and a plot.
 
     Finished episodes (of the same settings, the detector included) are reused, so an
-    interrupted run resumes. --setting as `track`'s (default recommended; paper: the paper's
-    system as written). --label-ablation adds DroneFL's label-ablation rows.
+    interrupted run resumes. --label-ablation adds DroneFL's label-ablation rows.
     Example: dronefl table1 --seeds "0 1 2 3 4" --scenarios "case1 case2 case3" --out runs/table1
     """
     from dronefl.experiments.table1 import TABLE1_METHODS, episode_configs, run_table1
@@ -1021,25 +716,13 @@ def table1(
     for method in chosen:
         check_choice(method, TRACK_METHODS, "--methods")
     base = _track_config(
-        scenario=specs[0], duration=duration, detector=detector, fl_period=fl_period,
-        **_setting(
-            setting, preset=preset, labels=labels, fusion=fusion, label_drones=label_drones,
-            epochs=epochs, noise_split=noise_split, correct_bias=correct_bias,
-            detected_only=detected_only, planner_distance=planner_distance,
-            constant_speed_psd=constant_speed_psd, random_walk_track_psd=random_walk_track_psd,
-            coverage_noise=coverage_noise,
-            temporal_kernel=temporal_kernel,
-            pretrain_gaps=_pretrain_gaps(pretrain_gaps),
-        ),
-        deshrink_labels=deshrink_labels, net_reports=net_reports, track_psd=track_psd, lr=lr,
-        weights_dtype=weights_dtype,
-        pretrained=pretrained, pretrain_rounds=pretrain_rounds, pretrain_seconds=pretrain_seconds,
-        out=out,
+        scenario=specs[0], setting=_setting(setting, set_), duration=duration, detector=detector,
+        pretrained=pretrained, out=out,
     )  # fmt: skip
     seed_list = _int_list(seeds, "--seeds")
     try:
-        episode_configs(base, specs, chosen, seed_list, label_ablation)
-    except ValueError as exc:  # a method that cannot fly these settings
+        episode_configs(base, specs, chosen, seed_list, label_ablation)  # each one checked
+    except ValueError as exc:  # a method that cannot fly these settings, a bad seed
         raise fail(str(exc)) from None
     episodes = run_table1(base, specs, chosen, seed_list, label_ablation)
     typer.echo((out / "table1.md").read_text())
@@ -1049,11 +732,8 @@ def table1(
 @app.command()
 def pretrain(
     scenario: ScenarioOption = "case2",
-    rounds: Annotated[int, typer.Option(min=1, help="FL rounds / centralized epochs x10.")] = 20,
-    past_steps: Annotated[int, typer.Option(help="L_p: past steps the predictor sees.")] = 10,
-    duration: Annotated[float, typer.Option(help="Seconds of crop field to record.")] = 600.0,
-    preset: PresetOption = "metric-scaffold",
-    pretrain_gaps: PretrainGapsOption = None,
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     image: Annotated[
         bool,
         typer.Option(
@@ -1063,67 +743,59 @@ def pretrain(
     ] = False,
     out: OutOption = Path("runs/pretrained"),
 ) -> None:
-    """Pretrain the closed loop's models in the crop field (DroneFL by FL, the large
-    centralized model on pooled data; with --image the paper's image model on the rendered
-    frames), L_p -> L_f = 1, and print each model's prediction error (MSE, m^2) per drone on
-    the held-out last 20 % of the recording. `track` does this on demand (with the same
-    --config; the default is the recommended setting's, metric-scaffold). A model already in
-    --out is kept; one stopped early goes on from its last round. --pretrain-gaps (default:
-    the recommended setting's) hides a run of detections in that share of the windows of
-    the trajectory predictors (not the image model).
+    """Prepare the closed loop's models: pretrain them in the crop field (DroneFL by FL, the
+    large centralized model on pooled data; with --image the paper's image model on the
+    rendered frames) as the setting's [pretraining] says, L_p -> L_f = 1, and print each
+    model's prediction error (MSE, m^2) per drone on the held-out last 20 % of the recording.
+    `track` does this on demand; a model already in --out is kept, one stopped early goes on
+    from its last round.
 
-    Example: dronefl pretrain --scenario case2 --config metric-sgd --out runs/pretrained
+    Example: dronefl pretrain --scenario case2 --setting paper --out runs/pretrained
     """
-    from dronefl.experiments.gap_choice import choose_detection_gaps
-    from dronefl.experiments.pretrain import KINDS, PretrainSpec, held_out_mse, pretrained_state
-    from dronefl.experiments.track import RECOMMENDED
-    from dronefl.validation import check_pretrain_gaps
-
-    gaps = _pretrain_gaps(pretrain_gaps)
-    gaps = RECOMMENDED["pretrain_gaps"] if gaps is None else gaps
+    from dronefl.experiments.prepare import prepare
+    from dronefl.experiments.pretrain import KINDS, held_out_mse
 
     spec = load_scenario(scenario)
-    if rounds < 1 or past_steps < 1:
-        raise fail("--rounds and --past-steps: must be >= 1")
-    if not duration > 0:
-        raise fail(f"--duration: must be positive, got {duration}")
-    try:
-        specs = [
-            PretrainSpec(spec, kind, past_steps, rounds=rounds, duration=duration, preset=preset)
-            for kind in KINDS
-            if image or kind != "image"
-        ]
-        check_pretrain_gaps(gaps)
-    except ValueError as exc:
-        raise fail(str(exc)) from None
-    if gaps == "auto":
-        choice = choose_detection_gaps(specs[0], out)
-        scores = ", ".join(f"{p:g}: {v:.4g} m^2" for p, v in choice.mse.items())
-        typer.echo(f"--pretrain-gaps auto: {choice.chosen:g} (orchard validation MSE {scores})")
-        gaps = choice.chosen
-    specs = [
-        s if s.kind == "image" else dataclasses.replace(s, detection_gaps=float(gaps))
-        for s in specs
-    ]
-    for pretraining in specs:
-        pretrained_state(pretraining, out)
-    for pretraining in specs:
+    chosen = _setting(setting, set_)
+    for kind in (k for k in KINDS if image or k != "image"):
+        prepared = prepare(spec, chosen, kind, out)
         try:
-            per_drone = held_out_mse(pretraining, out)
+            per_drone = held_out_mse(prepared.spec, out)
         except ValueError as exc:  # no drone evaluated: every update failed (logged above)
-            raise fail(f"pretraining {pretraining.kind}: {exc}") from None
+            raise fail(f"pretraining {kind}: {exc}") from None
         mean = sum(per_drone.values()) / len(per_drone)
         errors = " / ".join(f"{v:.3g}" for v in per_drone.values())
+        gaps = "" if kind == "image" else f", detection gaps {prepared.spec.detection_gaps:g}"
         typer.echo(
-            f"{pretraining.kind:12s} held-out MSE {mean:.4g} m^2 "
-            f"(drones {' / '.join(map(str, per_drone))}: {errors})"
+            f"{kind:12s} held-out MSE {mean:.4g} m^2 "
+            f"(drones {' / '.join(map(str, per_drone))}: {errors}{gaps})"
         )
-        typer.echo(f"wrote {pretraining.model_path(out)}")
+        typer.echo(f"wrote {prepared.spec.model_path(out)}")
+
+
+setting_app = typer.Typer(no_args_is_help=True, help="Settings: show one, resolved.")
+app.add_typer(setting_app, name="setting")
+
+
+@setting_app.command("show")
+def setting_show(
+    name: Annotated[
+        str, typer.Argument(help="A named setting (recommended, paper) or a TOML file.")
+    ] = "recommended",
+    set_: SetOption = None,
+    toml: Annotated[bool, typer.Option("--toml", help="Print it as a TOML file instead.")] = False,
+) -> None:
+    """Print a setting, resolved (a file's base and the --set overrides applied), with each
+    field's documentation; --toml prints a file to start your own from.
+
+    Example: dronefl setting show paper --set fusion.method=robust
+    """
+    chosen = _setting(name, set_)
+    typer.echo(chosen.to_toml() if toml else chosen.describe())
 
 
 @app.command()
 def replay(
-    ctx: typer.Context,
     episode: Annotated[
         Path, typer.Argument(help="A `dronefl track` or `dronefl deploy up` folder (episode.npz).")
     ],
@@ -1131,152 +803,45 @@ def replay(
         bool,
         typer.Option(
             "--as-flown",
-            help="Start from the fusion settings the episode was flown with (metrics.json's "
-            "fusion_config) and its --detected-only; the fusion options given beside it win.",
+            help="Start from the setting the episode was flown with (its metrics.json); --set "
+            "changes fields of it.",
         ),
     ] = False,
-    method: Annotated[str, typer.Option(help="Fusion method: robust|paper.")] = "robust",
-    acceleration_psd: Annotated[
-        float | None, typer.Option(help="Process noise q, m^2/s^3 (default: the scenario's).")
-    ] = None,
-    motion: Annotated[
-        str | None,
-        typer.Option(
-            help="constant_velocity|mean_reverting|coordinated_turn (default: the closed "
-            "loop's for the scenario and method)."
-        ),
-    ] = None,
-    velocity_time_constant: Annotated[
-        float | None,
-        typer.Option(help="mean_reverting: s over which the velocity forgets itself."),
-    ] = None,
-    adaptive: Annotated[bool, typer.Option(help="Adapt R per (drone, target).")] = True,
-    gate: Annotated[float, typer.Option(help="Squared Mahalanobis gate; 0: no gating.")] = 9.21,
-    huber_threshold: Annotated[float, typer.Option(help="Huber k^2 (robust).")] = 9.21,
-    error_autocorrelation: Annotated[
-        float | None, typer.Option(help="Lag-1 error autocorrelation (robust; default: tuned).")
-    ] = None,
-    fading: Annotated[
-        bool, typer.Option(help="Inflate the prior of a track the drones find lagging (robust).")
-    ] = True,
-    noise_split: Annotated[
-        str,
-        typer.Option(
-            help="adaptive|reported: share two drones' R by the noise they report (robust; "
-            "rebuilt from the episode's checkpoint.pkl)."
-        ),
-    ] = "adaptive",
-    coverage_noise: Annotated[
-        bool,
-        typer.Option(
-            "--coverage-noise/--no-coverage-noise",
-            help="Scale R of a prediction made from a window with few detections by "
-            "COVERAGE_NOISE_PROFILE (robust; the drone's sends of that target in the last 10 "
-            "steps), as `track --coverage-noise`.",
-        ),
-    ] = False,
-    temporal_kernel: Annotated[
-        bool,
-        typer.Option(
-            "--temporal-kernel/--no-temporal-kernel",
-            help="The fused tracks a kernel over the drones' last predictions (TEMPORAL_KERNEL; "
-            "robust or paper), as `track --temporal-kernel`.",
-        ),
-    ] = False,
-    correct_bias: Annotated[
-        bool,
-        typer.Option(
-            help="Correct each drone's predictions by the mean of its forecast residual, as "
-            "`track --correct-bias` does in flight (rebuilt from checkpoint.pkl)."
-        ),
-    ] = False,
-    detected_only: Annotated[
-        bool,
-        typer.Option(
-            help="Fuse only the predictions each drone made while it detected the target, as "
-            "`track --detected-only` sends them (from checkpoint.pkl's records)."
-        ),
-    ] = False,
-    net_reports: Annotated[
-        bool,
-        typer.Option(
-            help="With --noise-split reported: rebuild the reports net of the drones' projection "
-            "noise, as `track --net-reports` sends them (implied for an episode flown so)."
-        ),
-    ] = False,
-    track_psd: Annotated[
-        float | None,
-        typer.Option(
-            help="Fuse the tracks with a second filter of this q (m^2/s^3), the labels with the "
-            "fusion's own, as `track --track-psd` (with --as-flown: the episode's)."
-        ),
-    ] = None,
-    labels: Annotated[str, typer.Option(help="smoothed|filtered|ground_truth")] = "smoothed",
-    max_std: Annotated[float, typer.Option(help="Drop labels with a larger std, m.")] = 1.5,
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Folder for replay.json/.md.")] = (
         None
     ),
 ) -> None:
-    """Re-fuse and smooth an episode's recorded predictions with other fusion settings; print,
-    per target, each drone's prediction MSE beside the fused track's and the labels'. Without
-    --as-flown every fusion option left out is the closed loop's default for the scenario;
-    with it, the episode's own. A `deploy up` folder replays what its cloud received.
+    """Re-fuse and smooth an episode's recorded predictions as another setting's cloud would;
+    print, per target, each drone's prediction MSE beside the fused track's and the labels'.
+    What the setting has the drones send beyond what they sent (noise reports, the bias
+    correction) is rebuilt from their records. A `deploy up` folder replays what its cloud
+    received.
 
-    Example: dronefl replay runs/c2 --as-flown --method paper --out runs/c2/replay_paper
+    Example: dronefl replay runs/c2 --as-flown --set fusion.method=paper --out runs/c2/replay
     """
-    from click.core import ParameterSource
-
     from dronefl.experiments.replay import (
         EpisodeError,
-        flown_config,
         format_result,
         load_episode,
-        replay_config,
+        replay_setting,
         write_result,
     )
-    from dronefl.experiments.replay import replay as run
-    from dronefl.tracking.fusion import COVERAGE_NOISE_PROFILE, TEMPORAL_KERNEL
+    from dronefl.settings import SettingError
 
-    fusion = {
-        "method": method,
-        "motion": motion,
-        "velocity_time_constant": velocity_time_constant,
-        "acceleration_psd": acceleration_psd,
-        "adaptive": adaptive,
-        "gate": gate if gate > 0 else None,
-        "huber_threshold": huber_threshold,
-        "error_autocorrelation": error_autocorrelation,
-        "fading": fading,
-        "noise_split": noise_split,
-        "coverage_noise": COVERAGE_NOISE_PROFILE if coverage_noise else None,
-        "temporal_kernel": TEMPORAL_KERNEL if temporal_kernel else None,
-    }
+    if out is not None:
+        writable_folder(out)
     try:
         recorded = load_episode(episode)
         if as_flown:
-            given = {
-                name: value
-                for name, value in fusion.items()
-                if ctx.get_parameter_source(name) is ParameterSource.COMMANDLINE
-            }
-            config = flown_config(recorded, **given)
-            if ctx.get_parameter_source("detected_only") is not ParameterSource.COMMANDLINE:
-                detected_only = recorded.detected_only
-            if ctx.get_parameter_source("track_psd") is not ParameterSource.COMMANDLINE:
-                track_psd = recorded.flown_track_psd
+            if recorded.setting is None:
+                raise EpisodeError(f"{episode}/metrics.json: records no setting to replay as flown")
+            chosen = recorded.setting.override(set_ or ())
         else:
-            config = replay_config(recorded.scenario, **fusion)
-        result = run(
-            recorded,
-            config,
-            labels=labels,
-            max_std=max_std,
-            correct_bias=correct_bias,
-            detected_only=detected_only,
-            net_reports=net_reports,
-            track_psd=track_psd,
-        )
-    except (EpisodeError, ValueError) as exc:
+            chosen = _setting(setting, set_)
+        result = replay_setting(recorded, chosen)
+    except (EpisodeError, SettingError, ValueError) as exc:
         raise fail(str(exc)) from None
     typer.echo(format_result(result))
     if out is not None:
@@ -1361,6 +926,8 @@ def drone(
     drone_id: Annotated[int, typer.Option("--id", help="Drone id in the scenario.")],
     model: ModelOption,
     scenario: ScenarioOption = "case1",
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     connect: Annotated[
         str, typer.Option(help="Zenoh endpoints of the world and the cloud, comma-separated.")
     ] = "127.0.0.1:7440,127.0.0.1:7441",
@@ -1369,44 +936,29 @@ def drone(
     data_dir: Annotated[Path, typer.Option(help="The drone's disk.")] = Path("runs/deploy/drone"),
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
-    report_noise: Annotated[
-        bool,
-        typer.Option(
-            "--report-noise",
-            help="Also send the drone's own noise estimate with its predictions (for the "
-            "cloud's --noise-split reported).",
-        ),
-    ] = False,
-    correct_bias: CorrectBiasOption = False,
-    detected_only: DetectedOnlyOption = False,
-    net_reports: NetReportsOption = False,
 ) -> None:
     """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
-    controls down over Zenoh, and a Flower SuperNode that trains on that disk.
+    controls down over Zenoh, and a Flower SuperNode that trains on that disk. What it sends
+    is the setting's [drone] (give every process of a deployment the same setting file).
 
-    Example: dronefl drone --id 1 --model runs/deploy/model/pretrained.npz
+    Example: dronefl drone --id 1 --model runs/deploy/model/pretrained.npz --setting s.toml
     """
     from dronefl.deploy.drone import DroneSettings, run_drone
 
+    chosen = _setting(setting, set_)
     with _deploy_errors():
-        load_scenario(scenario)
-        settings = DroneSettings(
-            scenario,
-            drone_id,
-            model,
-            data_dir,
-            _endpoints(connect),
-            superlink,
-            runtime_port,
-            tls_dir,
-            start_timeout,
-            report_noise=report_noise,
-            correct_bias=correct_bias,
-            detected_only=detected_only,
-            net_reports=net_reports,
-        )
+        spec = load_scenario(scenario)
+        if drone_id not in spec.drone_ids:
+            raise ValueError(
+                f"--id: drone {drone_id} is not in scenario {spec.name} "
+                f"(drones {', '.join(map(str, spec.drone_ids))})"
+            )
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
+        settings = DroneSettings(
+            scenario, drone_id, model, data_dir, chosen, _endpoints(connect), superlink,
+            runtime_port, tls_dir, start_timeout,
+        )  # fmt: skip
         run_drone(settings, data_dir / "logs")
 
 
@@ -1414,14 +966,11 @@ def drone(
 def cloud(
     model: ModelOption,
     scenario: ScenarioOption = "case1",
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
     method: Annotated[str, typer.Option(help="dronefl|fixed")] = "dronefl",
     duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
-    fl_period: Annotated[float, typer.Option(help="Simulated s between FL rounds.")] = 40.0,
     seed: SeedOption = 0,
-    preset: PresetOption = "ours",
-    epochs: EpochsOption = None,
-    lr: LrOption = None,
-    stride: Annotated[int, typer.Option(help="Samples between training windows.")] = 2,
     deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
     listen: Annotated[str, typer.Option(help="Zenoh endpoint host:port.")] = "127.0.0.1:7441",
     connect: Annotated[str, typer.Option(help="The world's Zenoh endpoint.")] = "127.0.0.1:7440",
@@ -1429,54 +978,23 @@ def cloud(
     superlink_port: Annotated[int, typer.Option(help="SuperLink port.")] = 7442,
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
-    label_drones: LabelDronesOption = "all",
-    deshrink_labels: DeshrinkOption = False,
-    noise_split: NoiseSplitOption = "adaptive",
-    detected_only: Annotated[
-        bool,
-        typer.Option(
-            "--detected-only",
-            help="The drones send only the predictions of targets they detect (their "
-            "--detected-only): a drone learns a label of a target it watches from the others.",
-        ),
-    ] = False,
-    planner_distance: PlannerDistanceOption = "next",
-    constant_speed_psd: ConstantSpeedPsdOption = None,
-    track_psd: TrackPsdOption = None,
-    coverage_noise: Annotated[
-        bool,
-        typer.Option(
-            "--coverage-noise",
-            help="Scale R of a prediction made from a window with few detections (as `track "
-            "--coverage-noise`).",
-        ),
-    ] = False,
-    temporal_kernel: Annotated[
-        bool,
-        typer.Option(
-            "--temporal-kernel",
-            help="The planner's tracks a kernel over the drones' last predictions (as `track "
-            "--temporal-kernel`; `deploy up` gives it for random-walk targets only).",
-        ),
-    ] = False,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
-    that fuses, plans and plays an FL round every --fl-period s. Writes cloud.npz/json.
+    that fuses, plans and plays an FL round every learning.period s. Writes cloud.npz/json.
 
-    --config, --epochs and --lr set the rounds' training as `dronefl track`'s do; the model
-    file must hold the model that --config trains (`dronefl deploy up --config` writes it).
+    The model file must hold the model the setting trains (`dronefl deploy up` writes it).
 
     Example: dronefl cloud --model runs/deploy/model/pretrained.npz --superlink-host 0.0.0.0
     """
     from dronefl.deploy.clientapp import load_model
     from dronefl.deploy.cloud import CloudSettings
     from dronefl.deploy.superlink import SuperLinkSettings, run_cloud
-    from dronefl.fl.records import PRESETS, closed_loop_settings
-    from dronefl.tracking.fusion import constant_speed_q
+    from dronefl.fl.records import online_settings
 
+    chosen = _setting(setting, set_)
     with _deploy_errors():
-        load_scenario(scenario)
+        spec = load_scenario(scenario)
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
         if tls_dir and not Path(tls_dir).is_dir():
@@ -1486,40 +1004,23 @@ def cloud(
             scenario=scenario,
             model=str(model.resolve()),
             out=str(out),
+            setting=chosen.to_toml(),
             method=method,
             duration=duration,
-            fl_period=fl_period,
             deadline_ms=deadline_ms,
             listen=listen,
             connect=connect,
             tls_dir=str(Path(tls_dir).resolve()) if tls_dir else "",
             start_timeout=start_timeout,
-            label_drones=label_drones,
-            deshrink_labels=deshrink_labels,
-            preset=preset,
-            noise_split=noise_split,
-            detected_only=detected_only,
-            planner_distance=planner_distance,
-            constant_speed_psd=constant_speed_q(constant_speed_psd),
-            track_psd=track_psd,
-            coverage_noise=coverage_noise,
-            temporal_kernel=temporal_kernel,
         )
-        fl = closed_loop_settings(
-            preset,
-            "dronefl",
-            past_steps=10,
-            stride=stride,
-            epochs=PRESETS[preset].epochs if epochs is None else epochs,
-            lr=PRESETS[preset].lr if lr is None else lr,
-            seed=seed,
-            run_dir=str(out / "fl"),
-            out_dir=str(out / "fl" / "global"),
+        field_m = (spec.field.width, spec.field.height)
+        fl = online_settings(
+            chosen, "dronefl", seed, field_m, str(out / "fl"), str(out / "fl" / "global")
         )
         if load_model(model).model != fl.model:
             raise ValueError(
-                f"--model: {model} holds another model than --config {preset} trains (pass "
-                "the --config it was pretrained with)"
+                f"--model: {model} holds another model than the setting trains (give the "
+                "setting it was pretrained with)"
             )
         link = SuperLinkSettings(superlink_host, superlink_port, start_timeout)
         run_cloud(settings, fl, link, out / "logs")
@@ -1529,10 +1030,14 @@ def cloud(
 def deploy_up(
     scenario: ScenarioOption = "case2",
     method: Annotated[str, typer.Option(help="dronefl|fixed")] = "dronefl",
-    duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
-    fl_period: Annotated[float, typer.Option(help="Simulated s between FL rounds.")] = 40.0,
     seed: SeedOption = 0,
+    duration: Annotated[float, typer.Option(help="Simulated seconds.")] = 120.0,
     env: Annotated[str, typer.Option("--env", help="Environment.")] = "orchard",
+    setting: SettingOption = "recommended",
+    set_: SetOption = None,
+    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
+        "runs/pretrained"
+    ),
     tls: Annotated[bool, typer.Option(help="TLS, SuperNode authentication, Zenoh TLS.")] = False,
     certs: Annotated[
         Path | None, typer.Option(help="Certificate folder (default: a fresh one in --out).")
@@ -1540,73 +1045,29 @@ def deploy_up(
     base_port: Annotated[int, typer.Option(help="First of the deployment's ports.")] = 7440,
     deadline_ms: Annotated[float, typer.Option(help="Wall ms to wait for predictions.")] = 150.0,
     start_timeout: StartTimeoutOption = 120.0,
-    setting: SettingOption = "recommended",
-    preset: PresetOption = None,
-    epochs: EpochsOption = None,
-    lr: LrOption = None,
     restart_drones: Annotated[bool, typer.Option(help="Restart a drone that dies.")] = False,
-    pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
-        "runs/pretrained"
-    ),
-    label_drones: LabelDronesOption = None,
-    deshrink_labels: DeshrinkOption = False,
-    noise_split: NoiseSplitOption = None,
-    correct_bias: CorrectBiasOption = None,
-    detected_only: DetectedOnlyOption = None,
-    coverage_noise: CoverageNoiseOption = None,
-    temporal_kernel: TemporalKernelOption = None,
-    pretrain_gaps: PretrainGapsOption = None,
-    net_reports: NetReportsOption = False,
-    planner_distance: PlannerDistanceOption = None,
-    constant_speed_psd: ConstantSpeedPsdOption = None,
-    random_walk_track_psd: RandomWalkTrackPsdOption = None,
     out: OutOption = Path("runs/deploy"),
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
-    separate processes on 127.0.0.1; writes metrics.json and logs/ (one log per process).
-    --setting, --config, --epochs and --lr are `dronefl track`'s: the crop-field pretraining
-    and every round (SCAFFOLD's control variates included) follow the --config. The deployed
-    cloud fuses with the robust EKF and smoothed labels, so --setting paper is refused.
+    separate processes on 127.0.0.1, all with the same setting (written to OUT/setting.toml);
+    writes metrics.json and logs/ (one log per process).
 
-    Example: dronefl deploy up --scenario case2 --duration 600 --fl-period 100 --out runs/deploy
+    Example: dronefl deploy up --scenario case2 --duration 600 --out runs/deploy
     """
-    from dronefl.deploy.launcher import DeployConfig, run_deploy
+    from dronefl.deploy.launcher import DeployConfig, preflight, run_deploy
+    from dronefl.experiments.prepare import prepare
 
-    check_choice(env, ENVIRONMENTS, "--env")
-    chosen = _setting(
-        setting, preset=preset, label_drones=label_drones, epochs=epochs,
-        noise_split=noise_split, correct_bias=correct_bias, detected_only=detected_only,
-        planner_distance=planner_distance, constant_speed_psd=constant_speed_psd,
-        random_walk_track_psd=random_walk_track_psd, coverage_noise=coverage_noise,
-        temporal_kernel=temporal_kernel, pretrain_gaps=_pretrain_gaps(pretrain_gaps),
-    )  # fmt: skip
-    if (chosen.pop("labels"), chosen.pop("fusion")) != ("smoothed", "robust"):
-        raise fail(
-            f"--setting {setting}: the deployed cloud has the robust fusion and smoothed labels "
-            "only; use recommended or ours"
-        )
+    chosen = _setting(setting, set_)
     with _deploy_errors():
         config = DeployConfig(
-            scenario=scenario,
-            out=out,
-            method=method,
-            duration=duration,
-            fl_period=fl_period,
-            seed=seed,
-            environment=env,
-            tls=tls,
-            certs=certs,
-            base_port=base_port,
-            deadline_ms=deadline_ms,
-            start_timeout=start_timeout,
-            lr=lr,
-            pretrained=pretrained,
+            scenario=scenario, out=out, setting=chosen, method=method, duration=duration,
+            seed=seed, environment=env, tls=tls, certs=certs, base_port=base_port,
+            deadline_ms=deadline_ms, start_timeout=start_timeout, pretrained=pretrained,
             restart_drones=restart_drones,
-            deshrink_labels=deshrink_labels,
-            net_reports=net_reports,
-            **chosen,
-        )
-        metrics = run_deploy(config)
+        )  # fmt: skip
+        spec = preflight(config)  # ports and certificates, before any work
+        prepared = prepare(spec, chosen, "dronefl", pretrained, progress=False)
+        metrics = run_deploy(config, prepared.state, prepared.spec.model)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)
 
     typer.echo(format_metrics(metrics))
@@ -1634,7 +1095,7 @@ def deploy_report(
             if not path.is_file():
                 raise FileNotFoundError(f"{path} does not exist")
         settings = CloudLog.load(cloud_dir / "cloud.json").settings
-        with np.load(world_dir / "world.npz") as world:
+        with np.load(world_dir / "world.npz", allow_pickle=False) as world:
             seed, environment = int(world["seed"]), str(world["environment"])
         run = RunInfo(str(settings["method"]), seed, environment, dict(settings))
         deployment_metrics(spec, world_dir, cloud_dir, out, run).save(out / "metrics.json")

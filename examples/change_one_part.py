@@ -14,7 +14,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from dronefl.config import load_scenario
-from dronefl.experiments.episode import EpisodeMetrics
+from dronefl.results.episode import EpisodeMetrics
 from dronefl.experiments.track import LoopParts, TrackConfig, run_episode
 from dronefl.perception import make_detector
 from dronefl.perception.base import Detector

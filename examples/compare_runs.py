@@ -19,7 +19,7 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from dronefl.experiments.episode import EpisodeMetrics
+from dronefl.results.episode import EpisodeMetrics
 from dronefl.report.topdown import save_figure
 
 #: The compared columns of ``EpisodeMetrics.tracking``, with their axis labels.

@@ -9,8 +9,8 @@ detections. This records ``--duration`` s of the orchard under the scripted pilo
 pretrained on demand, 3-4 min each, cached under ``--pretrained``), the one-step prediction
 MSE (m²) by the number of detections n in the window, for windows whose target is detected
 at their last step (what a drone with ``detected_only`` sends) and for all windows (what
-Table I's prediction error averages; ``--pretrain-gaps auto`` chooses on the same figure, over
-all windows, on a recording with seed 1001). Writes a plot of the same beside the recording::
+Table I's prediction error averages; ``pretraining.detection_gaps = "auto"`` chooses on the
+same figure, over all windows, on a recording with seed 1001). Writes a plot of the same beside the recording::
 
     python examples/window_coverage.py --scenario case2 --seed 10 --gaps 0 0.3 \\
         --out runs/gaps/coverage
@@ -30,6 +30,7 @@ from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 from dronefl.experiments.simulate import simulate
 from dronefl.models.windows import FEATURE_DIM
 from dronefl.report.topdown import save_figure
+from dronefl.settings import Setting
 
 
 def main() -> None:
@@ -38,14 +39,14 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=10, help="orchard recording seed (tuning)")
     parser.add_argument("--duration", type=float, default=600.0, help="s of orchard")
     parser.add_argument("--gaps", type=float, nargs="+", default=[0.0, 0.3])
-    parser.add_argument("--config", default="metric-scaffold", help="training preset")
+    parser.add_argument("--setting", default="recommended", help="setting name or file")
     parser.add_argument("--pretrained", type=Path, default=Path("runs/pretrained"))
     parser.add_argument("--out", type=Path, default=Path("runs/window_coverage"))
     args = parser.parse_args()
     scenario = load_scenario(args.scenario)
+    setting = Setting.load(args.setting)
     specs = {
-        g: PretrainSpec(scenario, "dronefl", stride=2, preset=args.config, detection_gaps=g)
-        for g in args.gaps
+        g: PretrainSpec(scenario, setting, "dronefl", detection_gaps=g) for g in args.gaps
     }  # every spec is checked before anything runs
     run = args.out / f"orchard-seed{args.seed}"
     if not (run / "ground_truth.npz").is_file():

@@ -12,13 +12,13 @@ import shutil
 import signal
 import tempfile
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import psutil
 import pytest
 from cli_child import run_dronefl
 from filelock import FileLock
+from quick_models import plant_quick_models, train_quick_models
 
 _CACHE = tempfile.mkdtemp(prefix="dronefl-test-cache-")
 atexit.register(shutil.rmtree, _CACHE, ignore_errors=True)  # each pytest process its own
@@ -49,30 +49,9 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     items.sort(key=lambda item: item.path not in slow)
 
 
-#: The training presets whose quick models :func:`quick_pretrained` caches: the default and
-#: the recommended one (``make demo``'s), whose model reads box sizes otherwise.
-QUICK_PRESETS = ("ours", "metric-scaffold")
-
-
-def quick_gaps() -> tuple[float, ...]:
-    """The pretraining detection gaps the quick models stand in for: every candidate of
-    ``--pretrain-gaps auto`` (0 is the ``ours`` and ``paper`` settings')."""
-    from dronefl.experiments.gap_choice import GAP_CANDIDATES
-
-    return GAP_CANDIDATES
-
-
-def stand_in_gap_choice(spec, folder: Path) -> None:
-    """Record ``--pretrain-gaps auto``'s choice for ``spec`` in ``folder`` as 0 (the quick
-    models are one model for every candidate; no validation flight is flown for them)."""
-    from dronefl.experiments.gap_choice import GapChoice
-
-    GapChoice(0.0, {}).save(GapChoice.path(spec, folder, quick_gaps()))
-
-
 @pytest.fixture(scope="session")
 def quick_pretrained(tmp_path_factory):
-    """DroneFL models for Case 1, one per preset of :data:`QUICK_PRESETS`, each trained for
+    """DroneFL models for Case 1, one per setting of :data:`QUICK_SETTINGS`, each trained for
     ~6 s on 120 s of crop field (held-out error ~2.5 m^2, good enough for the closed loop to
     keep its targets in view), cached where the closed loop and ``deploy up --pretrained`` look
     for pretrained weights. Built once per
@@ -84,7 +63,7 @@ def quick_pretrained(tmp_path_factory):
     folder = base / "quick-pretrained"
     with FileLock(f"{folder}.lock"):
         if not (folder / "ready").is_file():
-            _train_quick_model(folder)
+            train_quick_models(folder)
             (folder / "ready").touch()
     return folder
 
@@ -93,72 +72,7 @@ def quick_pretrained(tmp_path_factory):
 def quick_pretrained_case2(quick_pretrained, tmp_path) -> Path:
     """``quick_pretrained``'s models as Case 2's pretrained DroneFL models (a model is the same
     for any scenario), in ``tmp_path / "pretrained"``."""
-    from dronefl.config import load_scenario
-    from dronefl.experiments.pretrain import PretrainSpec
-    from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
-
-    for preset in QUICK_PRESETS:
-        for gaps in quick_gaps():
-            case1, case2 = (
-                PretrainSpec(
-                    load_scenario(name), "dronefl", preset=preset, detection_gaps=gaps
-                ).settings(folder)
-                for name, folder in (
-                    ("case1", quick_pretrained),
-                    ("case2", tmp_path / "pretrained"),
-                )
-            )
-            state = load_checkpoint(case1.checkpoint_path, case1.history_path, "dronefl").state
-            checkpoint = Checkpoint("dronefl", 20, state, [])
-            save_checkpoint(case2.checkpoint_path, case2.history_path, checkpoint)
-        stand_in_gap_choice(
-            PretrainSpec(load_scenario("case2"), "dronefl", preset=preset), tmp_path / "pretrained"
-        )
-    return tmp_path / "pretrained"
-
-
-def _train_quick_model(folder: Path) -> None:
-    import torch
-
-    from dronefl.config import load_scenario
-    from dronefl.experiments.pretrain import PretrainSpec
-    from dronefl.experiments.simulate import simulate
-    from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
-    from dronefl.logs import load_run
-    from dronefl.models.model import build_model
-    from dronefl.models.train import TrainConfig, train_local
-    from dronefl.models.windows import WindowSet, WindowSpec, build_windows, ground_truth_labels
-
-    if folder.exists():  # a run that died while building it
-        shutil.rmtree(folder)
-    data = folder / "data"
-    simulate(
-        load_scenario("case1"),
-        environment="crop_field",
-        duration=120.0,
-        seed=5,
-        out=data,
-        progress=False,
-        plot=False,
-    )
-    logs, truth = load_run(data)
-    spec = WindowSpec(10, 1, relative=True, stride=2)
-    windows = WindowSet.concat(
-        [build_windows(log, ground_truth_labels(log, truth), spec) for log in logs.values()]
-    )
-    torch.set_num_threads(1)
-    for preset in QUICK_PRESETS:
-        spec = PretrainSpec(load_scenario("case1"), "dronefl", preset=preset)
-        model = build_model(spec.model, seed=0)
-        train_local(model, windows, TrainConfig(epochs=20, batch_size=32, seed=0))
-        for gaps in quick_gaps():  # one stand-in for the pretrainings with and without gaps
-            settings = replace(spec, detection_gaps=gaps).settings(folder)
-            save_checkpoint(
-                settings.checkpoint_path,
-                settings.history_path,
-                Checkpoint("dronefl", settings.rounds, model.state_dict(), []),
-            )
-        stand_in_gap_choice(spec, folder)
+    return plant_quick_models(quick_pretrained, "case2", tmp_path / "pretrained")
 
 
 PR_SET_CHILD_SUBREAPER = 36

@@ -28,3 +28,13 @@ def test_every_argument_s_help_is_shown():
         assert shown.exit_code == 0, shown.output
         first_words = " ".join(text.split()[:3])
         assert first_words in " ".join(shown.output.split()), (name, text)
+
+
+def test_the_closed_loop_commands_fit_on_a_screen():
+    # Every knob of the method is in the setting (--setting, --set), not an option.
+    runner = CliRunner(env={"COLUMNS": "100"})
+    for command, most in ((["track"], 40), (["table1"], 40), (["deploy", "up"], 60)):
+        shown = runner.invoke(app, [*command, "--help"])
+        assert shown.exit_code == 0, shown.output
+        assert len(shown.output.splitlines()) <= most, (command, shown.output)
+        assert "--set " in shown.output and "--setting" in shown.output

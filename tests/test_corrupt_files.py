@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from dronefl.config import ScenarioError, load_scenario
-from dronefl.experiments.fl_offline import OfflineResults
 from dronefl.fl.checkpoint import CheckpointError, load_checkpoint, load_history
 from dronefl.logs import GroundTruth, LogError, OnboardLog, PseudoLabels
 from dronefl.perception.dataset import read_scenes
 from dronefl.perception.yolo import YoloDetector, shipped_detector_path
+from dronefl.results.fl import OfflineResults
 
 CORPUS = Path(__file__).parent / "data" / "corrupt"
 #: The model the corpus checkpoints were saved from.

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from dronefl.experiments.episode import EpisodeMetrics
+from dronefl.results.episode import EpisodeMetrics
 
 ROOT = Path(__file__).parents[1]
 

@@ -10,7 +10,7 @@ Each module measures one part and returns typed figures (:mod:`~dronefl.bench.re
 * :mod:`~dronefl.bench.bandwidth`: communication per drone, DroneFL and centralized;
 * :mod:`~dronefl.bench.energy`: RAPL readings or labelled estimates;
 * :mod:`~dronefl.bench.results`: the figures, the goals and ``bench.json`` as types;
-* goals, Table II and ``bench.md``: :mod:`dronefl.report.bench`;
+* goals, Table II and ``bench.md``: :mod:`dronefl.bench.report`;
 * :mod:`~dronefl.bench.run`: :func:`~dronefl.bench.run.run_bench`, the whole benchmark;
 * :mod:`~dronefl.bench.command`: the ``dronefl bench`` command.
 """

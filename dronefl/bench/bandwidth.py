@@ -17,8 +17,8 @@ import numpy as np
 
 from dronefl.bench.results import CommFigure, EnvironmentUplink, UplinkFigure
 from dronefl.bench.vision import Frame
-from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.perception.uplink import DEFAULT_JPEG_QUALITY, encode_jpeg
+from dronefl.results.episode import EpisodeMetrics
 from dronefl.wire import raw_inputs_message
 
 #: Bytes of a centralized drone's odometry message sent with each frame.

@@ -2,14 +2,11 @@
 fixed models.
 
 Both episodes run in the same process, one after the other: orchard, projection detector, seed
-0, an FL round every 100 s for DroneFL, models pretrained in the crop field (cached under
-``pretrained``), and otherwise the :class:`~dronefl.experiments.track.TrackConfig` defaults,
-the ``ours`` setting (10 local epochs with Adam per round), not the recommended setting that
-Table I flies since 2026-12-05 (one SGD epoch per round; docs/benchmarks.md). The speed is
-simulated seconds per wall second; DroneFL's includes its Flower rounds (one Flower simulation
-engine, Ray with two workers of one CPU, kept up for the episode). The same DroneFL episode
-gives DroneFL's communication per drone with fp32 weights; a third episode, DroneFL with fp16
-weights, gives it with fp16.
+0, in the recommended setting (an FL round every 100 s for DroneFL), models pretrained in the
+crop field (cached under ``pretrained``). The speed is simulated seconds per wall second;
+DroneFL's includes its Flower rounds (one Flower simulation engine, Ray with two workers of
+one CPU, kept up for the episode). The same DroneFL episode gives DroneFL's communication per
+drone with fp32 weights; a third episode, DroneFL with fp16 weights, gives it with fp16.
 """
 
 from __future__ import annotations
@@ -21,11 +18,10 @@ from time import perf_counter
 from dronefl.bench.bandwidth import dronefl_comm
 from dronefl.bench.results import Benchmarks, ClosedLoopFigure, EpisodeSpeed
 from dronefl.config import Scenario
-from dronefl.experiments.episode import EpisodeMetrics
 from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.simulation import backend_config
-
-FL_PERIOD_S = 100.0
+from dronefl.results.episode import EpisodeMetrics
+from dronefl.settings import Setting
 
 
 def speed(what: str, metrics: EpisodeMetrics, call_seconds: float) -> EpisodeSpeed:
@@ -58,16 +54,17 @@ def bench_closed_loop(
       weights (:func:`dronefl.bench.bandwidth.dronefl_comm`).
     """
     metrics, calls = {}, {}
+    setting = Setting.load()
+    period = setting.learning.period
     runs = {"fixed": ("fixed", "float32"), "dronefl": ("dronefl", "float32"),
             "dronefl_fp16": ("dronefl", "float16")}  # fmt: skip
     for name, (method, dtype) in runs.items():
         config = TrackConfig(
             scenario=scenario,
             out=out / name,
+            setting=setting.with_values(training={"weights_dtype": dtype}),
             method=method,
             duration=duration,
-            fl_period=FL_PERIOD_S,
-            weights_dtype=dtype,
             pretrained=pretrained,
             progress=False,
             animate=False,
@@ -77,7 +74,7 @@ def bench_closed_loop(
         calls[name] = perf_counter() - started
     what = (
         f"{scenario.name} closed loop, orchard, projection detector, {duration:g} s, "
-        f"DroneFL with an FL round every {FL_PERIOD_S:g} s"
+        f"DroneFL with an FL round every {period:g} s"
     )
     ours = speed(what, metrics["dronefl"], calls["dronefl"])
     fixed = speed("the same episode with fixed models (no FL)", metrics["fixed"], calls["fixed"])
@@ -90,6 +87,6 @@ def bench_closed_loop(
             reference=fixed,
             ratio=fixed.wall_seconds / ours.wall_seconds,
         ),
-        dronefl_comm=dronefl_comm(metrics["dronefl"], FL_PERIOD_S, "float32"),
-        dronefl_comm_fp16=dronefl_comm(metrics["dronefl_fp16"], FL_PERIOD_S, "float16"),
+        dronefl_comm=dronefl_comm(metrics["dronefl"], period, "float32"),
+        dronefl_comm_fp16=dronefl_comm(metrics["dronefl_fp16"], period, "float16"),
     )

@@ -25,8 +25,9 @@ from dronefl.bench.results import Benchmarks
 from dronefl.bench.timing import latency, with_reference
 from dronefl.config import Scenario
 from dronefl.planning import DroneFLPlanner, double_integrator_step
+from dronefl.settings import Setting
 from dronefl.sim.world import drone_start_positions
-from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
+from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, cloud_fusion
 from dronefl.tracking.models import ConstantVelocity
 from dronefl.types import DroneState
 
@@ -161,7 +162,7 @@ def bench_cloud(scenario: Scenario, steps: int) -> Benchmarks:
     when filterpy is installed) and ``planner`` per step (forecast + plan, ms)."""
     if steps < 2 * WARMUP_STEPS:
         raise ValueError(f"steps must be >= {2 * WARMUP_STEPS}, got {steps}")
-    config = fusion_config(scenario)  # as in the closed loop
+    config = cloud_fusion(Setting.load().fusion, False, scenario).fusion  # as the closed loop
     try:
         reference = FilterpyFusion(scenario.dt, config)
     except ImportError:

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from time import perf_counter
 
-from dronefl.results import omitted_when_none
+from dronefl.serialize import omitted_when_none
 
 #: Where Linux exposes RAPL.
 POWERCAP = Path("/sys/class/powercap")

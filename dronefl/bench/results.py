@@ -3,8 +3,8 @@
 Every benchmark returns :class:`Benchmarks` holding the figures it measured (a
 :class:`BenchFigure` for a latency, other classes for speeds and communication);
 :class:`BenchResults` is the whole run, written to ``bench.json`` by
-:func:`dronefl.results.save_result` and read back by :func:`dronefl.results.load_result`.
-Fields made with :func:`~dronefl.results.omitted_when_none` are carried by some figures only
+:func:`dronefl.serialize.save_result` and read back by :func:`dronefl.serialize.load_result`.
+Fields made with :func:`~dronefl.serialize.omitted_when_none` are carried by some figures only
 and are absent from the JSON of the others.
 """
 
@@ -15,7 +15,7 @@ from dataclasses import dataclass, fields, replace
 from dronefl.bench.energy import EnergyEstimate, EnergyReading, RaplStatus
 from dronefl.bench.machine import MachineInfo
 from dronefl.config import Environment
-from dronefl.results import omitted_when_none
+from dronefl.serialize import omitted_when_none
 
 
 @dataclass(frozen=True)

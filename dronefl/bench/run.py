@@ -23,11 +23,11 @@ from rich.console import Console
 from dronefl.bench import bandwidth, closed_loop, cloud, predictor, simulator, vision
 from dronefl.bench.energy import EnergyMeter, rapl_meter, rapl_status
 from dronefl.bench.machine import LoadAverage, load_average, machine_info
+from dronefl.bench.report import energy_estimates, evaluate_goals, markdown, summary_line
 from dronefl.bench.results import BenchEnergy, Benchmarks, BenchResults, BenchSizes
 from dronefl.config import Scenario, load_scenario
 from dronefl.io import atomic_write_text
-from dronefl.report.bench import energy_estimates, evaluate_goals, markdown, summary_line
-from dronefl.results import save_result
+from dronefl.serialize import save_result
 
 SCHEMA_VERSION = 1
 

@@ -24,8 +24,18 @@ step), plans and sends each drone its control, which the drone hands to its auto
 world); after an FL round, if one is due, the cloud releases the step and the world moves on.
 """
 
-#: The closed-loop methods a deployment runs (``--method``): FL every round, or never.
+#: The closed-loop methods (:data:`dronefl.learners.LEARNERS`) a deployment runs: those whose
+#: model flies on the drones (the centralized baselines predict in the cloud from raw inputs).
 DEPLOY_METHODS = ("dronefl", "fixed")
+
+
+def check_deploy_method(method: str) -> None:
+    """``ValueError`` naming ``--method`` unless a deployment runs ``method``."""
+    if method not in DEPLOY_METHODS:
+        raise ValueError(
+            f"--method: {method!r} is not one of {', '.join(DEPLOY_METHODS)} (a deployment "
+            "flies the methods whose model runs on the drones)"
+        )
 
 
 class CloudError(RuntimeError):

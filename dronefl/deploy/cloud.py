@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import threading
 import time
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from logging import INFO, WARNING
 from pathlib import Path
 
@@ -36,7 +36,7 @@ from flwr.serverapp import Grid, ServerApp
 
 from dronefl.accounting import DIRECTIONS, ByteCounter
 from dronefl.config import Scenario, load_scenario
-from dronefl.deploy import DEPLOY_METHODS, CloudError
+from dronefl.deploy import CloudError, check_deploy_method
 from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.clientapp import load_model
 from dronefl.deploy.grid import DroneGrid
@@ -53,26 +53,13 @@ from dronefl.deploy.link import (
 )
 from dronefl.deploy.messages import LabelsMessage, TelemetryMessage, encode_release
 from dronefl.deploy.results import CloudLog, DeployedRound, TrafficCount
-from dronefl.fl.records import ARRAYS_KEY, PRESETS, ROUND_KEY, FlSettings, RoundRecord
+from dronefl.fl.records import ARRAYS_KEY, ROUND_KEY, FlSettings, RoundRecord
 from dronefl.fl.server_app import RoundDriver
 from dronefl.fl.traffic import message_bytes
 from dronefl.io import atomic_savez
-from dronefl.planning import DISTANCE_POINTS, DroneFLPlanner, PlannerConfig
-from dronefl.tracking import Fuser, PositionMeasurement, fusion_config, make_labels
-from dronefl.tracking.fusion import (
-    CONSTANT_SPEED_PSD,
-    COVERAGE_NOISE_PROFILE,
-    NOISE_SPLITS,
-    TEMPORAL_KERNEL,
-    check_track_psd,
-    constant_speed_q,
-    fusion_record,
-    planner_filter_config,
-    planner_forecast,
-    update_filters,
-)
-from dronefl.tracking.labels import LABEL_DRONES, training_labels
-from dronefl.validation import check_one_of
+from dronefl.learners import LEARNERS
+from dronefl.roles import CloudNode, Received
+from dronefl.settings import Setting, SettingError
 from dronefl.wire import (
     ControlMessage,
     NoiseReportMessage,
@@ -91,101 +78,67 @@ _PREFIX = "deploy-"
 class CloudSettings:
     """The cloud's side of one deployed episode (passed as the ServerApp's run config).
 
-    ``deadline_ms`` wall ms the cloud waits for a step's predictions; ``start_timeout`` s
-    for the world, the drones and their SuperNodes to appear; ``round_timeout`` s for one FL
-    message exchange; ``tls_dir`` the certificate folder (empty: no TLS); ``model`` the
-    pretrained weights (a file written by :func:`~dronefl.deploy.clientapp.save_model`);
-    ``out`` where ``cloud.npz`` / ``cloud.json`` go; ``label_drones`` which drone learns from
-    which label (:data:`~dronefl.tracking.labels.LABEL_DRONES`, as ``dronefl track
-    --label-drones``); ``deshrink_labels`` pushes each drone's labels away from it by the pull
-    its predictions show (as ``dronefl track --deshrink-labels``); ``preset`` the training
-    setting of the rounds (a key of :data:`~dronefl.fl.records.PRESETS`, as ``dronefl track
-    --config``; the rounds' own settings travel as :class:`~dronefl.fl.records.FlSettings`);
-    ``noise_split`` the fusion's (as ``dronefl track --noise-split``: ``reported`` uses the
-    noise reports that follow each drone's predictions); ``detected_only``: the drones send
-    only the predictions of targets they detect (``dronefl drone --detected-only``), so a
-    drone's own condition in ``--label-drones`` is that it watches the target (as ``dronefl
-    track --detected-only``); ``planner_distance`` where the planner measures a drone
-    (:attr:`~dronefl.planning.PlannerConfig.distance_at`, as ``dronefl track
-    --planner-distance``); ``constant_speed_psd`` the fusion's process noise q for
-    constant-speed targets, m^2/s^3 (as ``dronefl track --constant-speed-psd``); ``track_psd``
-    the q of a second filter whose tracks the planner flies on, the labels smoothed from the
-    fusion's own (as ``dronefl track --track-psd``; ``None``: one filter; ``deploy up`` passes
-    the q its setting resolves to for the scenario); ``coverage_noise``: scale ``R`` of a
-    prediction made from a window with few detections (as ``dronefl track --coverage-noise``);
-    ``temporal_kernel``: the tracks the planner flies on are the temporal kernel's (as
-    ``dronefl track --temporal-kernel``).
+    ``scenario`` flown for ``duration`` s by ``method`` (a :data:`~dronefl.learners.LEARNERS`
+    method a deployment runs, :func:`~dronefl.deploy.check_deploy_method`) as ``setting``
+    says (the resolved setting as TOML text, :meth:`~dronefl.settings.Setting.to_toml`: the
+    processes receive it whole); ``model`` the pretrained weights (a file written by
+    :func:`~dronefl.deploy.clientapp.save_model`); ``out`` where ``cloud.npz`` /
+    ``cloud.json`` go; ``deadline_ms`` wall ms the cloud waits for a step's predictions;
+    ``listen`` / ``connect`` its Zenoh endpoints; ``tls_dir`` the certificate folder (empty:
+    no TLS); ``start_timeout`` s for the world, the drones and their SuperNodes to appear;
+    ``round_timeout`` s for one FL message exchange.
     """
 
     scenario: str
     model: str
     out: str
-    method: str = "dronefl"
-    duration: float = 120.0
-    fl_period: float = 40.0
-    deadline_ms: float = 150.0
-    listen: str = "127.0.0.1:7441"
-    connect: str = "127.0.0.1:7440"
-    tls_dir: str = ""
-    start_timeout: float = 120.0
+    setting: str
+    method: str
+    duration: float
+    deadline_ms: float
+    listen: str
+    connect: str
+    tls_dir: str
+    start_timeout: float
     round_timeout: float = 300.0
-    label_drones: str = "all"
-    deshrink_labels: bool = False
-    preset: str = "ours"
-    noise_split: str = "adaptive"
-    detected_only: bool = False
-    planner_distance: str = "next"
-    constant_speed_psd: float = CONSTANT_SPEED_PSD
-    track_psd: float | None = None
-    coverage_noise: bool = False
-    temporal_kernel: bool = False
 
     def __post_init__(self) -> None:
-        constant_speed_q(self.constant_speed_psd)
-        check_track_psd("--track-psd", self.track_psd)
-        check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
-        check_one_of(self.preset, PRESETS, "--config")
-        check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
-        check_one_of(self.method, DEPLOY_METHODS, "--method")
-        check_one_of(self.label_drones, LABEL_DRONES, "--label-drones")
-        for name in ("duration", "fl_period", "deadline_ms", "start_timeout", "round_timeout"):
+        check_deploy_method(self.method)
+        try:
+            Setting.from_toml(self.setting, "deployed")
+        except SettingError as exc:
+            raise CloudError(f"run config: {exc}") from None
+        for name in ("duration", "deadline_ms", "start_timeout", "round_timeout"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
+
+    @property
+    def resolved(self) -> Setting:
+        """The episode's setting."""
+        return Setting.from_toml(self.setting, "deployed")
 
     @property
     def link(self) -> LinkConfig:
         tls = CertificateFolder(Path(self.tls_dir)).zenoh("cloud") if self.tls_dir else None
         return LinkConfig((self.listen,), (self.connect,), tls)
 
-    def to_run_config(self) -> dict[str, str | float | bool]:
-        """The settings as the ServerApp's run config. TOML has no null and Flower takes only
-        the keys the app declares (``pyproject.toml``), so an optional number that is
-        ``None`` travels as 0 (never a valid value of one: each must be positive)."""
-        return {
-            _PREFIX + k.replace("_", "-"): 0.0 if v is None else v for k, v in asdict(self).items()
-        }
+    def to_run_config(self) -> dict[str, str | float]:
+        """The settings as the ServerApp's run config (``pyproject.toml`` declares each key)."""
+        return {_PREFIX + k.replace("_", "-"): v for k, v in asdict(self).items()}
 
     @classmethod
     def from_run_config(cls, config: dict) -> CloudSettings:
-        """Parse the ServerApp's run config (TOML: a flag arrives as a bool). A flag that is
-        not a bool (``"false"`` would be true to ``bool``) raises :class:`CloudError` naming
-        the key, as :meth:`FlSettings.from_run_config` does."""
+        """Parse the ServerApp's run config; :class:`CloudError` naming a missing key."""
         values = {}
         for name, kind in cls.__annotations__.items():
             key = _PREFIX + name.replace("_", "-")
             if key not in config:
                 continue
-            value = config[key]
-            if kind == "bool" and not isinstance(value, bool):
-                raise CloudError(f"run config: {key!r} must be a bool, got {value!r}")
-            if kind == "float | None":
-                value = float(value) or None  # 0 stands for None (to_run_config)
-            elif kind == "float":
-                value = float(value)
-            elif kind != "bool":
-                value = str(value)
-            values[name] = value
-        return cls(**values)
+            values[name] = float(config[key]) if kind == "float" else str(config[key])
+        try:
+            return cls(**values)
+        except TypeError as exc:
+            raise CloudError(f"run config: {exc}") from None
 
 
 app = ServerApp()
@@ -212,40 +165,25 @@ class _Inbox:
 
 
 class CloudEpisode:
-    """One episode's cloud side (see the module docstring)."""
+    """One episode's cloud side (see the module docstring): a
+    :class:`~dronefl.roles.CloudNode` fed by what arrives over Zenoh."""
 
     def __init__(self, grid: Grid, settings: CloudSettings, fl: FlSettings) -> None:
         self.grid = grid
         self.settings = settings
         self.fl = fl
         self.scenario: Scenario = load_scenario(settings.scenario)
+        self.setting = settings.resolved
         s = self.scenario
         self.n_steps = int(round(settings.duration * s.rate_hz))
-        self.fl_every = int(round(settings.fl_period * s.rate_hz))
-        fusion = replace(
-            fusion_config(s, constant_speed_psd=settings.constant_speed_psd),
-            noise_split=settings.noise_split,
-            coverage_noise=COVERAGE_NOISE_PROFILE if settings.coverage_noise else None,
-            temporal_kernel=TEMPORAL_KERNEL if settings.temporal_kernel else None,
-        )
-        # The planner's tracks; with a q of their own the labels have a filter of their own.
-        self.fusion = fusion
-        self.label_fuser: Fuser | None = None
-        if settings.track_psd is not None:
-            self.label_fuser = Fuser(s.target_ids, s.drone_ids, fusion)
-        self.fuser = Fuser(
-            s.target_ids, s.drone_ids, planner_filter_config(fusion, settings.track_psd)
-        )
-        self.planner = DroneFLPlanner.from_scenario(
-            s, PlannerConfig(distance_at=settings.planner_distance)
-        )
+        self.fl_every = int(round(self.setting.learning.period * s.rate_hz))
+        self.federated = LEARNERS[settings.method].federated
+        self.node = CloudNode(s, self.setting)
         self.counter = ByteCounter()
         self.inbox = _Inbox()
         saved = load_model(Path(settings.model))
         if saved.model != fl.model:
-            raise CloudError(
-                f"{settings.model}: its model is not the one --config {settings.preset} trains"
-            )
+            raise CloudError(f"{settings.model}: its model is not the one the setting trains")
         self.state = saved.state
         self.history: list[RoundRecord] = []
         self.control: dict[str, torch.Tensor] | None = None  # SCAFFOLD's c, kept across rounds
@@ -262,7 +200,6 @@ class CloudEpisode:
         self.step_ms = np.full(self.n_steps, np.nan)  # telemetry in -> controls out, wall ms
         self.telemetry_bytes = 0
         self.fl_steps: list[int] = []
-        self.planner_seconds = 0.0
         self.current = 0
         self.column = {t: j for j, t in enumerate(s.target_ids)}
 
@@ -323,7 +260,7 @@ class CloudEpisode:
             raise CloudError(
                 f"no answer from {', '.join(sorted(missing))} within {s.start_timeout:.0f} s"
             )
-        if self.settings.method != "dronefl":
+        if not self.federated:
             return
         deadline = time.monotonic() + s.start_timeout
         while (absent := self._refresh_nodes(drones)) and time.monotonic() < deadline:
@@ -388,36 +325,29 @@ class CloudEpisode:
         row = {d.drone_id: d.position for d in telemetry.drones}
         for i, drone_id in enumerate(self.scenario.drone_ids):
             self.drone_position[k, i] = row.get(drone_id, (np.nan, np.nan))
-        received, reports = self._wait_predictions(k)
-        measurements = []
+        messages, reports = self._wait_predictions(k)
+        received = []
         for i, drone_id in enumerate(self.scenario.drone_ids):
-            message = received.get(drone_id)
+            message = messages.get(drone_id)
             if message is None:
                 self.silent[k, i] = True
                 continue
             report = reports.get(drone_id)
             noise = dict(zip(report.target_ids, report.noise, strict=True)) if report else {}
-            for target_id, position in zip(
-                message.target_ids, message.positions[:, 0], strict=True
-            ):
+            positions = message.positions[:, 0]
+            for target_id, position in zip(message.target_ids, positions, strict=True):
                 if target_id not in self.column:
                     continue
                 self.prediction[k, i, self.column[target_id]] = position
                 if target_id in noise:
                     self.noise[k, i, self.column[target_id]] = noise[target_id]
-                measurements.append(
-                    PositionMeasurement(drone_id, target_id, position, noise.get(target_id))
-                )
-        dt = self.scenario.dt
-        tracks, fused = update_filters(self.fuser, self.label_fuser, telemetry.t + dt, measurements)
-        for target_id, track in tracks.items():
+            received.append(Received(drone_id, message.target_ids, positions, noise))
+        fused = self.node.fuse(telemetry.t + self.scenario.dt, received)
+        for target_id, track in fused.tracks.items():
             self.track_position[k + 1, self.column[target_id]] = track.position
-        for target_id, track in fused.items():  # the uncertainty the planner trades
+        for target_id, track in fused.fused.items():  # the uncertainty the planner trades
             self.trace[k, self.column[target_id]] = np.trace(track.covariance)
-        t0 = time.perf_counter()
-        forecast = planner_forecast(self.fuser, self.label_fuser, tracks, dt)
-        plan = self.planner.plan(telemetry.drones, forecast)
-        self.planner_seconds += time.perf_counter() - t0
+        plan = self.node.plan(telemetry.drones, fused)
         self.cost[k] = plan.cost.total
         for drone_id in self.scenario.drone_ids:
             ax, ay = plan.accelerations[drone_id]
@@ -426,11 +356,7 @@ class CloudEpisode:
                 drone_id, "down", "control", self.link.put(CONTROL.format(id=drone_id), data)
             )
         self.step_ms[k] = 1000 * (time.perf_counter() - started)
-        if (
-            self.settings.method == "dronefl"
-            and (k + 1) % self.fl_every == 0
-            and k + 1 < self.n_steps
-        ):
+        if self.federated and (k + 1) % self.fl_every == 0 and k + 1 < self.n_steps:
             self._play_round(k + 1)
         self.link.put(RELEASE, encode_release(k))
         if (k + 1) % 100 == 0:
@@ -442,22 +368,11 @@ class CloudEpisode:
         """One FL round on the data of steps ``0 .. steps-1`` (the world waits meanwhile)."""
         started = time.perf_counter()
         server_round = len(self.rounds) + 1
-        # The same labels as `dronefl track`'s default: the fused tracks, RTS-smoothed, each
-        # drone's kept by the --label-drones rule and de-shrunk with --deshrink-labels.
-        t = np.arange(steps) * self.scenario.dt
-        labelled = self.fuser if self.label_fuser is None else self.label_fuser
-        smoothed = make_labels("smoothed", labelled, t).position
-        altitudes = [d.altitude for d in self.scenario.drones]
-        own, pull = training_labels(
-            smoothed, self.prediction, self.drone_position[:steps], altitudes,
-            self.settings.label_drones, self.settings.deshrink_labels,
-            self.scenario.assignment() if self.settings.detected_only else None,
-        )  # fmt: skip
-        if self.settings.deshrink_labels:
-            log(INFO, "round %d: labels de-shrunk by the pull %.3f", server_round, pull)
+        # The labels `dronefl track` gives: the cloud node's, from what the cloud received.
+        own = self.node.labels(np.arange(steps) * self.scenario.dt, self.prediction)
         per_drone = dict(zip(self.scenario.drone_ids, own, strict=True))
         if not np.isfinite(own).any():
-            log(INFO, "round %d: no drone has a label (--label-drones); none played", server_round)
+            log(INFO, "round %d: no drone has a label (learning.label_drones)", server_round)
             return
         ready = []
         for drone_id in self._alive_drones():
@@ -500,7 +415,6 @@ class CloudEpisode:
             rejected=rejected,
             weight_bytes_down=weights["down"],
             weight_bytes_up=weights["up"],
-            pull=pull,
             step=steps,
             participants=participants,
             missing=tuple(d for d in self.scenario.drone_ids if d not in participants),
@@ -581,14 +495,15 @@ class CloudEpisode:
         )
         CloudLog(
             wall_seconds=wall,
-            planner_ms_per_step=1000 * self.planner_seconds / self.n_steps,
-            gating_rejections=int(self.fuser.rejections),
-            track_resets=int(self.fuser.resets),
+            planner_ms_per_step=1000 * self.node.planner_seconds / self.n_steps,
+            gating_rejections=self.node.rejections,
+            track_resets=self.node.resets,
             rounds=tuple(self.rounds),
             late_predictions=dict(sorted(self.inbox.late.items())),
             traffic=traffic,
             telemetry_bytes=self.telemetry_bytes,
             supernodes=dict(sorted(self.nodes.items())),
-            settings=asdict(self.settings),
-            fusion_config=fusion_record(self.fusion),
+            settings={k: v for k, v in asdict(self.settings).items() if k != "setting"},
+            setting_name=self.setting.name,
+            setting=self.setting.to_dict(),
         ).save(out / "cloud.json")

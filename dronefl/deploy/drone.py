@@ -54,8 +54,8 @@ from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
 from dronefl.models.predictor import TrajectoryPredictor
-from dronefl.tracking.reports import NoiseReporter, detected_now
-from dronefl.wire import NoiseReportMessage, PredictionMessage
+from dronefl.roles import DroneNode
+from dronefl.settings import Setting
 
 #: How the SuperNode logs the node id the SuperLink assigned it.
 _NODE_ID = re.compile(r"SuperNode ID: (\d+)")
@@ -65,35 +65,25 @@ _NODE_ID = re.compile(r"SuperNode ID: (\d+)")
 class DroneSettings:
     """One drone process.
 
-    ``connect`` the Zenoh endpoints of the world and the cloud (``host:port``); ``superlink``
-    the SuperLink's ``host:port``; ``runtime_port`` the port of this SuperNode's local
-    ClientApp API; ``model`` the pretrained weights; ``data_dir`` the drone's disk;
+    ``scenario`` and ``drone_id`` which drone it is; ``model`` the pretrained weights;
+    ``data_dir`` the drone's disk; ``setting`` the episode's (what the drone sends is its
+    ``[drone]`` sub-config, :class:`~dronefl.roles.DroneNode`); ``connect`` the Zenoh
+    endpoints of the world and the cloud (``host:port``); ``superlink`` the SuperLink's
+    ``host:port``; ``runtime_port`` the port of this SuperNode's local ClientApp API;
     ``tls_dir`` the certificate folder (empty: no TLS; else also SuperNode authentication
-    with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink;
-    ``report_noise``: also send the drone's own noise estimate with its predictions
-    (:mod:`dronefl.tracking.reports`; the cloud's ``--noise-split reported`` uses it);
-    ``correct_bias``: subtract the running mean of its forecast residual from the predictions
-    it sends (as ``dronefl track --correct-bias``); ``detected_only``: send a target's
-    prediction only at the steps it detects that target (as ``dronefl track
-    --detected-only``; the cloud never sees the others, so the deployment's prediction error
-    is over the predictions sent); ``net_reports``: report the noise net of its detections'
-    projection noise (as ``dronefl track --net-reports``).
+    with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink.
     """
 
     scenario: str
     drone_id: int
     model: Path
     data_dir: Path
-    connect: tuple[str, ...] = ("127.0.0.1:7440", "127.0.0.1:7441")
-    superlink: str = "127.0.0.1:7442"
-    runtime_port: int = 7450
+    setting: Setting
+    connect: tuple[str, ...]
+    superlink: str
+    runtime_port: int
     tls_dir: str = ""
     start_timeout: float = 120.0
-    past_steps: int = 10
-    report_noise: bool = False
-    correct_bias: bool = False
-    detected_only: bool = False
-    net_reports: bool = False
 
     @property
     def link(self) -> LinkConfig:
@@ -103,7 +93,8 @@ class DroneSettings:
 
 
 class DroneProcess:
-    """The drone's state between Zenoh callbacks and its main loop."""
+    """The drone's :class:`~dronefl.roles.DroneNode` between Zenoh callbacks and its main
+    loop."""
 
     def __init__(self, settings: DroneSettings, info: dict, predictor: TrajectoryPredictor) -> None:
         scenario = load_scenario(settings.scenario)
@@ -111,21 +102,26 @@ class DroneProcess:
         self.settings = settings
         self.dt = float(info["dt"])
         meta = {k: info[k] for k in ("scenario", "environment", "seed")}
-        self.record = OnboardRecord(
-            spec.id, spec.altitude, scenario.target_ids, spec.targets, int(info["steps"]), meta
-        )
+        setting = settings.setting
+        self.node = DroneNode(
+            spec, scenario, setting.drone, setting.model.past_steps, int(info["steps"]), meta,
+            predictor,
+        )  # fmt: skip
         self.predictor = predictor
-        self.lock = threading.Lock()  # the record and the predictor
+        self.lock = threading.Lock()  # the node
         self.sensed: queue.Queue[bytes] = queue.Queue()
         self.log_path = Path(settings.data_dir) / f"drone_{spec.id}.npz"
-        wanted = settings.report_noise or settings.correct_bias
-        self.reporter = NoiseReporter(scenario, net=settings.net_reports) if wanted else None
+
+    @property
+    def record(self) -> OnboardRecord:
+        """The drone's onboard record."""
+        return self.node.record
 
     def flush(self, payload: bytes) -> bytes:
         """Write the onboard record and the round's pseudo-labels on their steps to disk."""
         labels = LabelsMessage.decode(payload)
         with self.lock:
-            if self.record.steps <= self.settings.past_steps:
+            if self.record.steps <= self.node.past_steps:
                 return b"too little data"
             log = self.record.to_log()
             log.save(self.log_path)
@@ -147,13 +143,7 @@ class DroneProcess:
             return b"model on disk is of another architecture than the one flown"
         with self.lock:
             self.predictor.load_state(saved.state)
-            if self.settings.correct_bias:  # the new model's bias, not the old one's
-                self.reporter.rebase(
-                    self.record,
-                    self.predictor,
-                    self.settings.past_steps,
-                    self.settings.detected_only,
-                )
+            self.node.install(self.predictor)
         print(
             f"drone {self.settings.drone_id}: model of round {saved.server_round} loaded",
             flush=True,
@@ -161,35 +151,13 @@ class DroneProcess:
         return b"ok"
 
     def predict(self, payload: bytes) -> bytes:
-        """Record one step's sensors and return the prediction message to publish (followed
-        by the noise report, :func:`~dronefl.wire.split_uplink`, when the drone reports)."""
+        """Record one step's sensors and return what the drone sends
+        (:meth:`~dronefl.roles.DroneNode.uplink`'s payload: the prediction message, followed
+        by the noise report when the drone reports, :func:`~dronefl.wire.split_uplink`)."""
         sense = SenseMessage.decode(payload)
-        drone_id = self.settings.drone_id
         with self.lock:
-            self.record.append(sense.odometry, sense.detections)
-            if self.reporter is not None:
-                self.reporter.observe(self.record)
-            window = self.record.window(self.settings.past_steps)
-            if window is None:
-                return PredictionMessage(drone_id, sense.step, (), np.zeros((0, 1, 2))).encode()
-            predicted = self.predictor.predict(*window)[:, 0]  # (n_assigned, 2) m
-            if self.settings.detected_only:  # the others are not sent
-                predicted = np.where(detected_now(self.record)[:, None], predicted, np.nan)
-        assigned = self.record.target_ids[self.record.assigned]
-        seen = np.isfinite(predicted).all(axis=1)
-        ids, positions = tuple(int(t) for t in assigned[seen]), predicted[seen]
-        if self.settings.correct_bias:
-            positions = self.reporter.correct(ids, positions)
-        message = PredictionMessage(drone_id, sense.step, ids, positions[:, None]).encode()
-        if self.reporter is None:
-            return message
-        # The residual of the next step compares the positions as sent, in centimetres.
-        sent = PredictionMessage.decode(message)
-        if not self.settings.report_noise:  # the bias correction's residual only
-            self.reporter.remember(sent.target_ids, sent.positions[:, 0])
-            return message
-        known, rows = self.reporter.report(sent.target_ids, sent.positions[:, 0])
-        return message + NoiseReportMessage(drone_id, sense.step, known, rows).encode()
+            self.node.sense(sense.odometry, sense.detections)
+            return self.node.uplink(sense.step, self.node.forecast()).payload
 
 
 def load_predictor(path: Path, past_steps: int) -> TrajectoryPredictor:
@@ -220,7 +188,7 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
             f"(drones {', '.join(map(str, scenario.drone_ids))})"
         )
     torch.set_num_threads(1)
-    predictor = load_predictor(Path(settings.model), settings.past_steps)
+    predictor = load_predictor(Path(settings.model), settings.setting.model.past_steps)
     Path(settings.data_dir).mkdir(parents=True, exist_ok=True)
     host, port = settings.superlink.rsplit(":", 1)
     with Children(logs) as children, Link(settings.link) as link:
@@ -247,7 +215,10 @@ def _start_supernode(settings: DroneSettings, children: Children) -> Child:
     started again after 1, 2, 4, 8, 8, ... s while that still falls within ``start_timeout``;
     then the SuperLink's refusal is the error."""
     certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
-    command = supernode_command(settings, certs)
+    command = supernode_command(
+        settings.drone_id, settings.data_dir, settings.superlink, settings.runtime_port,
+        settings.start_timeout, certs,
+    )  # fmt: skip
     env = flower_env(Path(settings.data_dir) / "flwr")
     print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
     deadline = time.monotonic() + settings.start_timeout

@@ -16,13 +16,9 @@ import shutil
 import sys
 import tomllib
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.processes import DeployError
-
-if TYPE_CHECKING:
-    from dronefl.deploy.drone import DroneSettings
 
 #: Name of the SuperLink connection in ``$FLWR_HOME/config.toml``.
 CONNECTION = "dronefl"
@@ -75,22 +71,32 @@ def superlink_command(host: str, port: int, certs: CertificateFolder | None) -> 
     ]
 
 
-def supernode_command(settings: DroneSettings, certs: CertificateFolder | None) -> list[str]:
-    node_config = f'drone-id={settings.drone_id} data-dir="{Path(settings.data_dir).resolve()}"'
+def supernode_command(
+    drone_id: int,
+    data_dir: Path,
+    superlink: str,
+    runtime_port: int,
+    start_timeout: float,
+    certs: CertificateFolder | None,
+) -> list[str]:
+    """Drone ``drone_id``'s SuperNode: its disk ``data_dir``, the SuperLink at ``superlink``
+    (``host:port``), its local Runtime API on ``runtime_port``, ``start_timeout`` s to reach
+    the SuperLink; with ``certs``, TLS and this drone's authentication key."""
+    node_config = f'drone-id={drone_id} data-dir="{Path(data_dir).resolve()}"'
     command = [
         executable("flower-supernode"),
         "--superlink",
-        settings.superlink,
+        superlink,
         "--port",
-        str(settings.runtime_port),
+        str(runtime_port),
         "--node-config",
         node_config,
         "--max-wait-time",
-        str(settings.start_timeout),
+        str(start_timeout),
     ]
     if certs is None:
         return [*command, "--insecure"]
-    key = certs.supernode_key(settings.drone_id)
+    key = certs.supernode_key(drone_id)
     certs.check([certs.ca, key])
     return [
         *command,

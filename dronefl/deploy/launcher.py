@@ -16,43 +16,46 @@ drone i's SuperNode runtime API B+10+i.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import psutil
+import torch
 
-from dronefl.config import Scenario, load_scenario
-from dronefl.deploy import DEPLOY_METHODS
+from dronefl.config import ENVIRONMENTS, Scenario, load_scenario
+from dronefl.deploy import check_deploy_method
 from dronefl.deploy.certs import CertificateFolder, make_certificates
 from dronefl.deploy.link import Link, LinkConfig
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
-from dronefl.fl.records import PRESETS
-from dronefl.planning import DISTANCE_POINTS
-from dronefl.tracking.fusion import (
-    NOISE_SPLITS,
-    check_track_psd,
-    constant_speed_q,
-    has_random_walk,
-    planner_track_psd,
-)
-from dronefl.tracking.labels import LABEL_DRONES
-from dronefl.validation import check_one_of, check_pretrain_gaps
+from dronefl.io import atomic_write_text
+from dronefl.models.model import PredictorConfig
+from dronefl.settings import Setting
+from dronefl.validation import check_one_of
 
 HOST = "127.0.0.1"
+#: The file in ``--out`` with the episode's resolved setting, which every process reads.
+SETTING_FILE = "setting.toml"
 
 
 @dataclass(frozen=True)
 class DeployConfig:
-    """One deployed episode on this machine (see ``dronefl deploy up --help``)."""
+    """One deployed episode on this machine (see ``dronefl deploy up --help``): ``scenario``
+    flown for ``duration`` s in ``environment`` by ``method`` as ``setting`` says, seeded by
+    ``seed``; ``out`` the episode folder; ``tls`` with certificates from ``certs`` (default:
+    a fresh folder in ``out``); ``base_port`` the first of its ports; ``deadline_ms`` the
+    wall ms the cloud waits for a step's predictions; ``start_timeout`` s for the processes
+    to come up; ``pretrained`` the cache of pretrained models; ``restart_drones`` restarts a
+    drone that dies."""
 
     scenario: str
     out: Path
+    setting: Setting = field(default_factory=Setting.load)
     method: str = "dronefl"
     duration: float = 120.0
-    fl_period: float = 40.0
     seed: int = 0
     environment: str = "orchard"
     tls: bool = False
@@ -60,46 +63,25 @@ class DeployConfig:
     base_port: int = 7440
     deadline_ms: float = 150.0
     start_timeout: float = 120.0
-    preset: str = "ours"
-    epochs: int | None = None
-    lr: float | None = None
-    stride: int = 2
     pretrained: Path = Path("runs/pretrained")
     restart_drones: bool = False
-    label_drones: str = "all"
-    deshrink_labels: bool = False
-    noise_split: str = "adaptive"
-    correct_bias: bool = False
-    detected_only: bool = False
-    coverage_noise: bool = False
-    temporal_kernel: bool = False
-    pretrain_gaps: float | str = 0.0
-    net_reports: bool = False
-    planner_distance: str = "next"
-    constant_speed_psd: float | None = None
-    random_walk_track_psd: float | None = None
 
     def __post_init__(self) -> None:
-        check_one_of(self.noise_split, NOISE_SPLITS, "--noise-split")
-        if self.net_reports and self.noise_split != "reported":
-            raise ValueError("--net-reports: needs --noise-split reported")
-        check_one_of(self.preset, PRESETS, "--config")
-        for name in ("epochs", "lr"):  # unset: the preset's, as `dronefl track`
-            if getattr(self, name) is None:
-                object.__setattr__(self, name, getattr(PRESETS[self.preset], name))
-        check_one_of(self.method, DEPLOY_METHODS, "--method")
-        check_one_of(self.label_drones, LABEL_DRONES, "--label-drones")
-        for name in ("duration", "fl_period", "deadline_ms", "start_timeout", "lr"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"--{name.replace('_', '-')}: must be positive")
-        if self.epochs < 1:
-            raise ValueError(f"--epochs: must be >= 1, got {self.epochs}")
+        check_deploy_method(self.method)
+        check_one_of(self.environment, ENVIRONMENTS, "--env")
+        if self.setting.learning.labels == "ground_truth":
+            raise ValueError(
+                "learning.labels: a deployed cloud does not know the truth; use smoothed or "
+                "filtered"
+            )
+        for name in ("duration", "deadline_ms", "start_timeout"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"--{name.replace('_', '-')}: must be positive, got {value}")
+        if not 0 <= self.seed < 2**32:
+            raise ValueError(f"--seed: must be in [0, 2^32), got {self.seed}")
         if not 1024 <= self.base_port <= 65000:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
-        check_one_of(self.planner_distance, DISTANCE_POINTS, "--planner-distance")
-        constant_speed_q(self.constant_speed_psd)
-        check_track_psd("--random-walk-track-psd", self.random_walk_track_psd)
-        check_pretrain_gaps(self.pretrain_gaps)
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -112,42 +94,56 @@ class DeployConfig:
             ports[f"drone {d} SuperNode"] = self.base_port + 10 + d
         return ports
 
+    def describe(self) -> dict[str, str | int | float | bool | None]:
+        """What ran, for ``metrics.json``'s config (the setting recorded apart)."""
+        values = {k: v for k, v in asdict(self).items() if k != "setting"}
+        return {k: str(v) if isinstance(v, Path) else v for k, v in values.items()}
 
-def pretrained_model(config: DeployConfig, scenario: Scenario, out: Path) -> Path:
-    """The crop-field pretrained DroneFL model of the ``--config`` (:mod:`dronefl.experiments.
-    pretrain`, the one ``dronefl track`` starts from), with its architecture, as a model file
-    every process loads by path."""
+
+def model_file(state: dict[str, torch.Tensor], model: PredictorConfig, out: Path) -> Path:
+    """The pretrained weights ``state`` of ``model`` as the file every process loads by path
+    (``<out>/model/pretrained.npz``)."""
     from dronefl.deploy.clientapp import save_model
-    from dronefl.experiments.gap_choice import resolved_gaps
-    from dronefl.experiments.pretrain import PretrainSpec, pretrained_state
 
-    spec = PretrainSpec(scenario, "dronefl", stride=config.stride, preset=config.preset)
-    spec = resolved_gaps(spec, config.pretrain_gaps, config.pretrained, progress=False)
-    state = pretrained_state(spec, config.pretrained, progress=False)
     path = out / "model" / "pretrained.npz"
-    save_model(path, state, 0, spec.model)
+    save_model(path, state, 0, model)
     return path
 
 
-def run_deploy(config: DeployConfig) -> DeploymentMetrics:
-    """Run the episode; returns (and writes) its metrics."""
+def preflight(config: DeployConfig) -> Scenario:
+    """What can be checked before any work: the scenario, free ports, the certificate folder
+    given; returns the scenario. :class:`~dronefl.deploy.processes.DeployError` or
+    ``ValueError`` naming what is wrong."""
     scenario = load_scenario(config.scenario)
-    ports = config.ports(scenario)
-    for what, port in ports.items():
+    for what, port in config.ports(scenario).items():
         if port_in_use(HOST, port):
             raise DeployError(f"port {port} ({what}) is already in use; pick another --base-port")
+    if config.tls and config.certs is not None:
+        _given_certificates(config.certs, scenario)
+    return scenario
+
+
+def run_deploy(
+    config: DeployConfig, state: dict[str, torch.Tensor], model: PredictorConfig
+) -> DeploymentMetrics:
+    """Run the episode, every drone starting from the pretrained weights ``state`` of
+    ``model`` (:func:`dronefl.experiments.prepare.prepare`, the ones ``dronefl track``
+    starts from); returns (and writes) its metrics."""
+    scenario = preflight(config)
+    ports = config.ports(scenario)
     out = config.out.resolve()
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     certs = _certificates(config, scenario, out) if config.tls else None
-    model = pretrained_model(config, scenario, out)
+    model_path = model_file(state, model, out)
+    atomic_write_text(out / SETTING_FILE, config.setting.to_toml())
     started = time.perf_counter()
     with Children(logs) as children:
         tls = certs.zenoh("launcher") if certs else None
         link_config = LinkConfig(
             (), (f"{HOST}:{ports['world Zenoh']}", f"{HOST}:{ports['cloud Zenoh']}"), tls
         )
-        commands = _commands(config, scenario, model, certs, out)
+        commands = _commands(config, scenario, model_path, certs, out)
         cloud = children.start("cloud", commands["cloud"])
         world = children.start("world", commands["world"])
         drones = {
@@ -174,7 +170,7 @@ def run_deploy(config: DeployConfig) -> DeploymentMetrics:
         method=config.method,
         seed=config.seed,
         environment=config.environment,
-        config={k: str(v) if isinstance(v, Path) else v for k, v in asdict(config).items()},
+        config=config.describe(),
         processes=processes,
         peak_memory_mb=peak / 2**20,
     )
@@ -187,7 +183,12 @@ def _certificates(config: DeployConfig, scenario: Scenario, out: Path) -> Certif
     """The given certificate folder (checked), or a fresh one in ``<out>/certs``."""
     if config.certs is None:
         return make_certificates(out / "certs", scenario.drone_ids)
-    certs = CertificateFolder(config.certs.resolve())
+    return _given_certificates(config.certs, scenario)
+
+
+def _given_certificates(folder: Path, scenario: Scenario) -> CertificateFolder:
+    """The certificate folder ``folder``, every file of the scenario's roles checked."""
+    certs = CertificateFolder(folder.resolve())
     roles = ["world", "cloud", "launcher", *(f"drone-{d}" for d in scenario.drone_ids)]
     paths = [certs.ca, *certs.superlink]
     for role in roles:
@@ -210,34 +211,15 @@ def _commands(
     world_at, cloud_at = f"{HOST}:{ports['world Zenoh']}", f"{HOST}:{ports['cloud Zenoh']}"
     superlink = f"{HOST}:{ports['SuperLink']}"
     tls = ["--tls-dir", str(certs.folder)] if certs else []
-    track_psd = planner_track_psd(scenario, None, config.random_walk_track_psd)  # the cloud's
-    kernel = config.temporal_kernel and has_random_walk(scenario)  # as `track`'s
     base = [sys.executable, "-m", "dronefl.cli"]
     common = ["--scenario", config.scenario, "--start-timeout", str(config.start_timeout), *tls]
+    setting = ["--setting", str(out / SETTING_FILE)]
     commands = {
         "cloud": [
-            *base, "cloud", *common,
+            *base, "cloud", *common, *setting,
             "--method", config.method,
             "--duration", str(config.duration),
-            "--fl-period", str(config.fl_period),
             "--seed", str(config.seed),
-            "--config", config.preset,
-            "--epochs", str(config.epochs),
-            "--lr", repr(config.lr),
-            "--stride", str(config.stride),
-            "--label-drones", config.label_drones,
-            *(["--deshrink-labels"] if config.deshrink_labels else []),
-            "--noise-split", config.noise_split,
-            *(["--detected-only"] if config.detected_only else []),
-            "--planner-distance", config.planner_distance,
-            *(
-                ["--constant-speed-psd", repr(config.constant_speed_psd)]
-                if config.constant_speed_psd is not None
-                else []
-            ),
-            *(["--track-psd", repr(track_psd)] if track_psd is not None else []),
-            *(["--coverage-noise"] if config.coverage_noise else []),
-            *(["--temporal-kernel"] if kernel else []),
             "--deadline-ms", str(config.deadline_ms),
             "--listen", cloud_at,
             "--connect", world_at,
@@ -257,17 +239,13 @@ def _commands(
     }  # fmt: skip
     for d in scenario.drone_ids:
         commands[f"drone-{d}"] = [
-            *base, "drone", *common,
+            *base, "drone", *common, *setting,
             "--id", str(d),
             "--connect", f"{world_at},{cloud_at}",
             "--superlink", superlink,
             "--runtime-port", str(ports[f"drone {d} SuperNode"]),
             "--model", str(model),
             "--data-dir", str(out / "drones" / f"drone-{d}"),
-            *(["--report-noise"] if config.noise_split == "reported" else []),
-            *(["--correct-bias"] if config.correct_bias else []),
-            *(["--detected-only"] if config.detected_only else []),
-            *(["--net-reports"] if config.net_reports else []),
         ]  # fmt: skip
     return commands
 

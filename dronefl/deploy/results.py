@@ -1,7 +1,7 @@
 """The deployed episode's results: the world's truth joined with the cloud's log.
 
-:class:`DeploymentMetrics` is ``track``'s :class:`~dronefl.experiments.episode.EpisodeMetrics`
-(the same tracking metrics, computed by :func:`~dronefl.experiments.episode.tracking_metrics`
+:class:`DeploymentMetrics` is ``track``'s :class:`~dronefl.results.episode.EpisodeMetrics`
+(the same tracking metrics, computed by :func:`~dronefl.results.episode.tracking_metrics`
 on the predictions the cloud actually received) plus what only a deployment has:
 ``engine = "deployment"``, each round's participants and missing drones, the silent steps
 and missed rounds of every drone, the controls the world did not get in time, the wall time
@@ -11,7 +11,6 @@ of a step against the 200 ms budget, and the processes and their peak memory.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,15 +18,15 @@ import numpy as np
 
 from dronefl.accounting import ByteCounter
 from dronefl.config import Scenario
-from dronefl.experiments.episode import (
+from dronefl.io import atomic_savez
+from dronefl.results.episode import (
+    REPORTS_NAME,
     ClosedLoopRound,
     EpisodeLog,
     EpisodeMetrics,
     tracking_metrics,
 )
-from dronefl.experiments.replay import REPORTS_NAME
-from dronefl.io import atomic_savez
-from dronefl.results import load_result, save_result
+from dronefl.serialize import load_result, save_result
 from dronefl.tracking import set_distances
 
 #: Wall-time budget of one step (the 5 Hz loop), ms.
@@ -64,9 +63,8 @@ class CloudLog:
     ``late_predictions`` per drone: predictions that arrived after their step's deadline;
     ``traffic`` every byte count of the drone <-> cloud link (predictions as received,
     controls, labels and weights as sent); ``telemetry_bytes`` the world's telemetry;
-    ``supernodes`` each drone's SuperNode id; ``settings`` as given; ``fusion_config`` the
-    settings of the fusion's filter, whose history gives the labels
-    (:func:`~dronefl.tracking.fusion.fusion_record`; ``None`` in a file written before it).
+    ``supernodes`` each drone's SuperNode id; ``settings`` the cloud's settings as given
+    but the setting, which is ``setting`` (by section) named ``setting_name``.
     """
 
     wall_seconds: float
@@ -79,7 +77,8 @@ class CloudLog:
     telemetry_bytes: int
     supernodes: dict[int, int]
     settings: dict[str, str | float]
-    fusion_config: str | None = None
+    setting_name: str
+    setting: dict[str, dict]
 
     def save(self, path: Path) -> Path:
         return save_result(path, self)
@@ -144,19 +143,6 @@ class RunInfo:
     peak_memory_mb: float | None = None
 
 
-def _flown(summary: CloudLog) -> dict[str, str | float]:
-    """What the cloud fused with, as ``dronefl track`` records it in ``metrics.json``'s config
-    (``fusion_config``; ``track_psd`` when the planner flew on a second filter), so that
-    ``dronefl replay --as-flown`` re-fuses a deployed episode as it ran."""
-    flown: dict[str, str | float] = {}
-    if summary.fusion_config is not None:
-        flown["fusion_config"] = summary.fusion_config
-    track_psd = summary.settings.get("track_psd")  # None reads back as NaN
-    if isinstance(track_psd, float) and math.isfinite(track_psd):
-        flown["track_psd"] = track_psd
-    return flown
-
-
 def deployment_metrics(
     scenario: Scenario, world_dir: Path, cloud_dir: Path, out: Path, run: RunInfo
 ) -> DeploymentMetrics:
@@ -183,8 +169,7 @@ def deployment_metrics(
         fl_steps=[int(k) for k in logged["fl_steps"]],
     )
     log.save(Path(out) / "episode.npz")
-    if "noise" in logged:  # a cloud.npz of 2026-12-06 (afternoon) on
-        atomic_savez(Path(out) / REPORTS_NAME, noise=logged["noise"])
+    atomic_savez(Path(out) / REPORTS_NAME, noise=logged["noise"])
     ids = scenario.drone_ids
     rounds = summary.rounds
     sim_seconds = n_steps * scenario.dt
@@ -202,7 +187,7 @@ def deployment_metrics(
         seed=run.seed,
         environment=run.environment,
         detector="projection",
-        labels="smoothed",
+        labels=str(summary.setting["learning"]["labels"]),
         tracking=tracking_metrics(log, scenario),
         set_distances=set_distances(log.target_position, log.track_position, scenario.dt),
         fl_rounds=rounds,
@@ -214,7 +199,12 @@ def deployment_metrics(
         gating_rejections=summary.gating_rejections,
         track_resets=summary.track_resets,
         centralized_inputs=None,
-        config={**run.config, **_flown(summary)},
+        config={
+            **run.config,
+            "scenario": scenario.name,
+            "setting_name": summary.setting_name,
+            "setting_values": summary.setting,
+        },
         engine=ENGINE,
         silent_steps={d: int(logged["silent"][:, i].sum()) for i, d in enumerate(ids)},
         late_predictions=summary.late_predictions,

@@ -39,7 +39,7 @@ from dronefl.config import Scenario, load_scenario, parse_scenario
 from dronefl.experiments.simulate import scenario_dict, simulate
 from dronefl.fl.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from dronefl.fl.methods import ABLATION_METHODS, FIG5_METHODS, METHODS
-from dronefl.fl.records import PRESETS, FlSettings, RoundRecord
+from dronefl.fl.records import FlSettings, RoundRecord, fl_settings
 from dronefl.fl.server_app import initial_state
 from dronefl.fl.simulation import run_federated
 from dronefl.io import atomic_write_json, atomic_write_text, crash_point
@@ -48,8 +48,10 @@ from dronefl.models.model import build_model, count_parameters, describe
 from dronefl.models.train import evaluate, train_local
 from dronefl.models.windows import WindowSet, ground_truth_labels, split_windows
 from dronefl.progress import progress_bar
-from dronefl.report.fl_plots import Curve, plot_altitude, plot_fig5
+from dronefl.report.fl_plots import plot_altitude, plot_fig5
 from dronefl.report.paired import paired_comparison, paired_markdown
+from dronefl.results.fl import Curve, MethodResult, OfflineResults, SeedResult
+from dronefl.settings import Setting
 
 #: Called with each finished round (e.g. to advance a progress bar).
 OnRound = Callable[[RoundRecord], None]
@@ -57,6 +59,8 @@ OnRound = Callable[[RoundRecord], None]
 #: The evaluation seeds (recordings, initialisations, training order). Settings were chosen
 #: on recordings with seeds >= 10 only.
 EVALUATION_SEEDS: tuple[int, ...] = (0, 1, 2, 3, 4)
+#: The most rounds an offline run may ask for.
+MAX_ROUNDS = 10000
 #: The paper's three cases, the default scenarios of the ablation.
 PAPER_CASES: tuple[str, ...] = ("case1", "case2", "case3")
 
@@ -64,265 +68,53 @@ PAPER_CASES: tuple[str, ...] = ("case1", "case2", "case3")
 @dataclass(frozen=True)
 class OfflineConfig:
     """One offline FL experiment: ``scenario`` (a built-in name such as ``case3`` or a YAML
-    path), ``rounds`` global rounds, ``seeds`` (each: recording, model initialisation,
-    training), ``duration`` s of recorded flight, window ``stride`` (samples), FedProx
-    ``proximal_mu``, the ``methods`` to train, the training ``preset`` (a key of
-    :data:`dronefl.fl.records.PRESETS`), whether to ``resume`` finished work in ``out``,
-    progress bars, the number format of the weights on the wire (``weights_dtype``), local
-    ``epochs`` per round (``None``: the preset's), the cloud's ``aggregation`` rule, the
-    ``round_timeout`` s it waits for the drones and injected drone ``faults`` (see
+    path), every method of ``methods`` trained as ``setting`` says (its model and training
+    sub-configs; default: the recommended setting) for ``rounds`` global rounds on a
+    recording of ``duration`` s per seed of ``seeds`` (each: recording, model
+    initialisation, training), with windows every ``stride`` samples (the paper's offline
+    protocol, not a setting); whether to ``resume`` finished work in ``out``, progress bars,
+    the ``round_timeout`` s the cloud waits for the drones and injected drone ``faults`` (see
     :class:`FlSettings`)."""
 
     scenario: str
     out: Path
+    setting: Setting = field(default_factory=Setting.load)
     rounds: int = 50
     seeds: tuple[int, ...] = EVALUATION_SEEDS
     duration: float = 600.0
     stride: int = 10
-    proximal_mu: float = 0.01
     methods: tuple[str, ...] = FIG5_METHODS
-    preset: str = "ours"
     resume: bool = False
     progress: bool = True
-    weights_dtype: str = "float32"
-    epochs: int | None = None
-    aggregation: str = "mean"
     round_timeout: float = 3600.0
     faults: str = ""
 
     def __post_init__(self) -> None:
-        if self.rounds < 1:
-            raise ValueError(f"--rounds: must be >= 1, got {self.rounds}")
+        if not 1 <= self.rounds <= MAX_ROUNDS:
+            raise ValueError(f"--rounds: must be in [1, {MAX_ROUNDS}], got {self.rounds}")
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"--seeds: need distinct seeds, got {list(self.seeds)}")
+        if any(not 0 <= s < 2**32 for s in self.seeds):
+            raise ValueError(f"--seeds: must be in [0, 2^32), got {list(self.seeds)}")
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown:
             raise ValueError(f"--methods: unknown {unknown}; choose from {list(METHODS)}")
-        if self.preset not in PRESETS:
-            raise ValueError(f"--config: unknown {self.preset!r}; choose one of {list(PRESETS)}")
-        if not self.duration > 0:
-            raise ValueError(f"--duration: must be > 0 s, got {self.duration}")
-        if self.epochs is not None and self.epochs < 1:
-            raise ValueError(f"--epochs: must be >= 1, got {self.epochs}")
+        if not (math.isfinite(self.duration) and 1.0 <= self.duration <= 86400.0):
+            raise ValueError(f"--duration: must be in [1, 86400] s, got {self.duration}")
+        if not 1 <= self.stride <= 1000:
+            raise ValueError(f"--stride: must be in [1, 1000], got {self.stride}")
 
     def seed_dir(self, seed: int) -> Path:
         return self.out / f"seed_{seed}"
 
     def settings(self, method: str, seed: int, scenario: Scenario) -> FlSettings:
-        """The FL settings of ``method`` for ``seed`` (the preset's training setting)."""
-        base = FlSettings(
-            run_dir=str(self.seed_dir(seed) / "data"),
-            out_dir=str(self.seed_dir(seed) / method),
-            method=method,
-            rounds=self.rounds,
-            stride=self.stride,
-            proximal_mu=self.proximal_mu,
-            seed=seed,
-            resume=self.resume,
-            weights_dtype=self.weights_dtype,
-            field_width=scenario.field.width,
-            field_height=scenario.field.height,
-            aggregation=self.aggregation,
-            round_timeout=self.round_timeout,
-            faults=self.faults,
-        )
-        settings = PRESETS[self.preset].apply(base)
-        return settings if self.epochs is None else replace(settings, epochs=self.epochs)
-
-
-@dataclass(frozen=True)
-class SeedResult:
-    """One method trained on one seed's recording: the mean over drones of the test MSE
-    (m^2) after each round, the final one per drone (m^2), bytes down/up per round (all drones
-    together; 0 for training in the cloud), rejected updates by round, and wall seconds."""
-
-    seed: int
-    mean_test_mse: tuple[float, ...]
-    final_test_mse_per_drone: dict[int, float]
-    bytes_down_per_round: tuple[int, ...]
-    bytes_up_per_round: tuple[int, ...]
-    rejected: dict[int, tuple[str, ...]]
-    wall_seconds: float
-
-    @property
-    def final_test_mse(self) -> float:
-        """Mean over drones of the final test MSE, m^2."""
-        return self.mean_test_mse[-1]
-
-    @classmethod
-    def of(cls, seed: int, history: list[RoundRecord], seconds: float) -> SeedResult:
-        rounds = sorted(history, key=lambda r: r.server_round)
-        if any(r.mean_test_mse is None for r in rounds):
-            raise ValueError(f"seed {seed}: a round without test MSE (was evaluation off?)")
-        return cls(
-            seed=seed,
-            mean_test_mse=tuple(float(r.mean_test_mse) for r in rounds),  # type: ignore[arg-type]
-            final_test_mse_per_drone=dict(rounds[-1].test_mse),
-            bytes_down_per_round=tuple(sum(r.bytes_down.values()) for r in rounds),
-            bytes_up_per_round=tuple(sum(r.bytes_up.values()) for r in rounds),
-            rejected={r.server_round: r.rejected for r in rounds if r.rejected},
-            wall_seconds=seconds,
-        )
-
-    def to_json(self) -> dict:
-        return {
-            "seed": self.seed,
-            "final_test_mse": self.final_test_mse,
-            "final_test_mse_per_drone": {
-                str(k): v for k, v in self.final_test_mse_per_drone.items()
-            },
-            "mean_test_mse": list(self.mean_test_mse),
-            "bytes_down_per_round": list(self.bytes_down_per_round),
-            "bytes_up_per_round": list(self.bytes_up_per_round),
-            "rejected": {str(k): list(v) for k, v in self.rejected.items()},
-            "wall_seconds": self.wall_seconds,
-        }
-
-    @classmethod
-    def from_json(cls, raw: dict) -> SeedResult:
-        return cls(
-            seed=int(raw["seed"]),
-            mean_test_mse=tuple(float(v) for v in raw["mean_test_mse"]),
-            final_test_mse_per_drone={
-                int(k): float(v) for k, v in raw["final_test_mse_per_drone"].items()
-            },
-            bytes_down_per_round=tuple(int(v) for v in raw["bytes_down_per_round"]),
-            bytes_up_per_round=tuple(int(v) for v in raw["bytes_up_per_round"]),
-            rejected={int(k): tuple(v) for k, v in raw["rejected"].items()},
-            wall_seconds=float(raw["wall_seconds"]),
-        )
-
-
-@dataclass(frozen=True)
-class MethodResult:
-    """One method over every seed: its architecture (``model`` in words, ``parameters``), how
-    it trained, and one :class:`SeedResult` per seed. ``final_test_mse`` (m^2) and
-    ``final_test_mse_per_drone`` (m^2) are means over seeds, with the population std."""
-
-    method: str
-    model: str
-    parameters: int
-    training: str
-    seeds: tuple[SeedResult, ...] = ()
-
-    def with_seed(self, result: SeedResult) -> MethodResult:
-        kept = tuple(r for r in self.seeds if r.seed != result.seed)
-        return replace(self, seeds=tuple(sorted((*kept, result), key=lambda r: r.seed)))
-
-    def seed_result(self, seed: int) -> SeedResult | None:
-        return next((r for r in self.seeds if r.seed == seed), None)
-
-    @property
-    def final_test_mse(self) -> float:
-        return float(np.mean([r.final_test_mse for r in self.seeds]))
-
-    @property
-    def final_test_mse_std(self) -> float:
-        return float(np.std([r.final_test_mse for r in self.seeds]))
-
-    @property
-    def drones(self) -> tuple[int, ...]:
-        return tuple(sorted(self.seeds[0].final_test_mse_per_drone))
-
-    @property
-    def final_test_mse_per_drone(self) -> dict[int, float]:
-        return {
-            d: float(np.mean([r.final_test_mse_per_drone[d] for r in self.seeds]))
-            for d in self.drones
-        }
-
-    @property
-    def final_test_mse_per_drone_std(self) -> dict[int, float]:
-        return {
-            d: float(np.std([r.final_test_mse_per_drone[d] for r in self.seeds]))
-            for d in self.drones
-        }
-
-    @property
-    def curve(self) -> Curve:
-        """Mean and std over seeds of the average test MSE per round, m^2."""
-        values = np.array([r.mean_test_mse for r in self.seeds])  # (S, R)
-        return Curve(tuple(values.mean(axis=0)), tuple(values.std(axis=0)))
-
-    def to_json(self) -> dict:
-        return {
-            "model": self.model,
-            "parameters": self.parameters,
-            "training": self.training,
-            "seeds_run": [r.seed for r in self.seeds],
-            "final_test_mse": self.final_test_mse,
-            "final_test_mse_std": self.final_test_mse_std,
-            "final_test_mse_per_drone": {
-                str(k): v for k, v in self.final_test_mse_per_drone.items()
-            },
-            "final_test_mse_per_drone_std": {
-                str(k): v for k, v in self.final_test_mse_per_drone_std.items()
-            },
-            "mean_test_mse": list(self.curve.mean),
-            "wall_seconds": sum(r.wall_seconds for r in self.seeds),
-            "per_seed": [r.to_json() for r in self.seeds],
-        }
-
-    @classmethod
-    def from_json(cls, method: str, raw: dict) -> MethodResult:
-        return cls(
-            method=method,
-            model=str(raw["model"]),
-            parameters=int(raw["parameters"]),
-            training=str(raw["training"]),
-            seeds=tuple(SeedResult.from_json(r) for r in raw["per_seed"]),
-        )
-
-
-@dataclass(frozen=True)
-class OfflineResults:
-    """Everything ``results.json`` holds: the scenario, the setting, and one
-    :class:`MethodResult` per method. MSE: m^2, mean over a drone's test windows, the L_f
-    future steps and both axes, then averaged over drones."""
-
-    scenario: str
-    preset: str
-    rounds: int
-    duration_s: float
-    stride: int
-    proximal_mu: float
-    methods: dict[str, MethodResult] = field(default_factory=dict)
-
-    def to_json(self) -> dict:
-        return {
-            "scenario": self.scenario,
-            "config": self.preset,
-            "rounds": self.rounds,
-            "duration_s": self.duration_s,
-            "stride": self.stride,
-            "proximal_mu": self.proximal_mu,
-            "mse": "m^2, mean over windows, future steps and both axes; averaged over drones",
-            "methods": {name: block.to_json() for name, block in self.methods.items()},
-        }
-
-    @classmethod
-    def from_json(cls, raw: dict) -> OfflineResults:
-        return cls(
-            scenario=str(raw["scenario"]),
-            preset=str(raw["config"]),
-            rounds=int(raw["rounds"]),
-            duration_s=float(raw["duration_s"]),
-            stride=int(raw["stride"]),
-            proximal_mu=float(raw["proximal_mu"]),
-            methods={m: MethodResult.from_json(m, b) for m, b in raw["methods"].items()},
-        )
-
-    def save(self, path: Path) -> None:
-        atomic_write_json(path, self.to_json())
-
-    @classmethod
-    def load(cls, path: Path) -> OfflineResults:
-        try:
-            return cls.from_json(json.loads(path.read_text()))
-        except (OSError, ValueError, KeyError, TypeError, AttributeError):
-            raise CheckpointError(
-                f"{path}: corrupt results file; remove it or drop --resume"
-            ) from None
+        """The FL settings of ``method`` for ``seed``."""
+        return fl_settings(
+            self.setting, method, run_dir=str(self.seed_dir(seed) / "data"),
+            out_dir=str(self.seed_dir(seed) / method), rounds=self.rounds, future_steps=5,
+            stride=self.stride, seed=seed, field_m=(scenario.field.width, scenario.field.height),
+            resume=self.resume, round_timeout=self.round_timeout, faults=self.faults,
+        )  # fmt: skip
 
 
 def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> OfflineResults:
@@ -333,19 +125,19 @@ def run_fl_offline(config: OfflineConfig, scenario: Scenario | None = None) -> O
     results_path = config.out / "results.json"
     results = OfflineResults(
         scenario.name,
-        config.preset,
+        config.setting.name,
+        config.setting.digest(),
         config.rounds,
         config.duration,
         config.stride,
-        config.proximal_mu,
     )
     if config.resume and results_path.is_file():
         earlier = OfflineResults.load(results_path)
         if _experiment(earlier) != _experiment(results):
             raise CheckpointError(
                 f"{results_path}: results of another experiment ({earlier.scenario}, "
-                f"config {earlier.preset}, {earlier.rounds} rounds, {earlier.duration_s:g} s, "
-                f"stride {earlier.stride}, mu {earlier.proximal_mu:g}); use another --out"
+                f"setting {earlier.setting}, {earlier.rounds} rounds, {earlier.duration_s:g} s, "
+                f"stride {earlier.stride}); use another --out"
             )
         results = replace(results, methods=dict(earlier.methods))
     for seed in config.seeds:
@@ -379,11 +171,10 @@ def _experiment(results: OfflineResults) -> tuple:
     """What must agree for results to belong to one experiment."""
     return (
         results.scenario,
-        results.preset,
+        results.setting_digest,
         results.rounds,
         results.duration_s,
         results.stride,
-        results.proximal_mu,
     )
 
 
@@ -436,7 +227,7 @@ def _refuse_other(path: Path, recorded: object, asked: dict) -> None:
 
 def _seed_json(result: SeedResult, config: OfflineConfig, settings: FlSettings) -> dict:
     return {
-        "config": config.preset,
+        "setting": config.setting.digest(),
         "rounds": config.rounds,
         "settings": settings.training_key(),
         **result.to_json(),
@@ -447,10 +238,10 @@ def _load_seed_result(settings: FlSettings, config: OfflineConfig) -> SeedResult
     path = _seed_file(settings)
     try:
         raw = json.loads(path.read_text())
-        if (raw["config"], raw["rounds"]) != (config.preset, config.rounds):
+        if (raw["setting"], raw["rounds"]) != (config.setting.digest(), config.rounds):
             raise CheckpointError(
-                f"{path}: a run of config {raw['config']} with {raw['rounds']} rounds, not "
-                f"{config.preset} with {config.rounds}; use another --out"
+                f"{path}: a run of another setting or {raw['rounds']} rounds, not "
+                f"{config.setting.name} with {config.rounds}; use another --out"
             )
         if "settings" in raw:
             _refuse_other(path, raw["settings"], settings.training_key())
@@ -723,7 +514,7 @@ def run_ablation(
     rounds: int = 50,
     seeds: tuple[int, ...] = EVALUATION_SEEDS,
     stride: int = 10,
-    preset: str = "ours",
+    setting: Setting | None = None,
     resume: bool = False,
     progress: bool = True,
 ) -> list[OfflineResults]:
@@ -740,11 +531,11 @@ def run_ablation(
         config = OfflineConfig(
             name,
             out / scenario.name,
+            setting or Setting.load(),
             rounds,
             seeds,
             stride=stride,
             methods=ABLATION_METHODS,
-            preset=preset,
             resume=resume,
             progress=progress,
         )
@@ -778,7 +569,7 @@ def run_altitude_study(
     seeds: tuple[int, ...] = EVALUATION_SEEDS,
     stride: int = 10,
     methods: tuple[str, ...] = ("dronefl-no-adain", "dronefl"),
-    preset: str = "ours",
+    setting: Setting | None = None,
     resume: bool = False,
     progress: bool = True,
 ) -> dict:
@@ -794,11 +585,11 @@ def run_altitude_study(
         config = OfflineConfig(
             scenario,
             out / label.replace(" ", "_"),
+            setting or Setting.load(),
             rounds,
             seeds,
             stride=stride,
             methods=methods,
-            preset=preset,
             resume=resume,
             progress=progress,
         )

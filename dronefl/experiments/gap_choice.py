@@ -1,4 +1,4 @@
-"""``--pretrain-gaps auto``: the detection-gap probability of a scenario's crop-field
+"""``pretraining.detection_gaps = "auto"``: the detection-gap probability of a scenario's crop-field
 pretraining, chosen on an orchard validation recording.
 
 The crop field hardly hides a target; the orchard's trees do, and a model pretrained on
@@ -34,10 +34,10 @@ from dronefl.io import atomic_write_json
 from dronefl.logs import load_run
 from dronefl.models.model import build_model
 from dronefl.models.windows import WindowSet, build_windows, ground_truth_labels
-from dronefl.results import ResultError
-from dronefl.validation import check_pretrain_gaps
+from dronefl.serialize import ResultError
+from dronefl.settings import AUTO
 
-#: ``--pretrain-gaps auto``: the detection-gap probabilities a scenario's pretraining chooses
+#: ``detection_gaps = "auto"``: the detection-gap probabilities a scenario's pretraining chooses
 #: from (0.3: the best of 0.15 / 0.3 / 0.5 on Case 2's tuning recording, docs/rules/
 #: pretrain_gaps.md), on an orchard validation recording with seed :data:`GAP_VALIDATION_SEED`
 #: (never an episode's), the smaller unless a larger one is :data:`GAP_TIE` better.
@@ -110,7 +110,7 @@ class GapChoice:
 
     @classmethod
     def load(cls, path: Path) -> GapChoice:
-        """The choice saved in ``path`` (:class:`~dronefl.results.ResultError` naming the file
+        """The choice saved in ``path`` (:class:`~dronefl.serialize.ResultError` naming the file
         when it is not one)."""
         try:
             raw = json.loads(Path(path).read_text())
@@ -127,7 +127,7 @@ def choose_detection_gaps(
     candidates: tuple[float, ...] = GAP_CANDIDATES,
     progress: bool = True,
 ) -> GapChoice:
-    """``--pretrain-gaps auto``: pretrain ``spec``'s DroneFL model with each of ``candidates``
+    """``detection_gaps = "auto"``: pretrain ``spec``'s DroneFL model with each of ``candidates``
     (ascending), score each on every window of an orchard validation recording of the
     scenario (:func:`validation_dir`; ground truth, as a calibration flight with surveyed
     vehicles would give), and keep the smallest probability that no larger one beats by more
@@ -160,12 +160,14 @@ def choose_detection_gaps(
     return choice
 
 
-def resolved_gaps(
-    spec: PretrainSpec, gaps: float | str, folder: Path, progress: bool = True
-) -> PretrainSpec:
-    """``spec`` with the detection-gap probability ``gaps``: a number as it is, ``"auto"``
-    the scenario's choice (:func:`choose_detection_gaps`)."""
-    check_pretrain_gaps(gaps)
-    if gaps == "auto":
+def resolve_gaps(spec: PretrainSpec, folder: Path, progress: bool = True) -> PretrainSpec:
+    """``spec`` with the detection-gap probability its setting asks for
+    (``pretraining.detection_gaps``): a number as it is, ``auto`` the scenario's choice
+    (:func:`choose_detection_gaps`, pretraining the candidates when they are not cached). The
+    image model reads frames, not windows: its spec is returned as it is."""
+    gaps = spec.setting.pretraining.detection_gaps
+    if spec.kind == "image":
+        return spec
+    if gaps == AUTO:
         gaps = choose_detection_gaps(spec, folder, progress=progress).chosen
     return dataclasses.replace(spec, detection_gaps=float(gaps))

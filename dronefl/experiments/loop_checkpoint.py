@@ -37,10 +37,10 @@ from pathlib import Path
 import torch
 
 from dronefl.accounting import ByteCounter
-from dronefl.experiments.episode import ClosedLoopRound, EpisodeLog
 from dronefl.fl.checkpoint import CheckpointError
 from dronefl.io import atomic_write_bytes
 from dronefl.models.online import OnboardRecord
+from dronefl.results.episode import ClosedLoopRound, EpisodeLog
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser
 from dronefl.tracking.reports import NoiseReporter
@@ -48,30 +48,30 @@ from dronefl.tracking.reports import NoiseReporter
 #: The checkpoint's file name in the episode folder.
 CHECKPOINT_NAME = "checkpoint.pkl"
 #: Written into every checkpoint; a file of another format version is refused.
-CHECKPOINT_FORMAT = "dronefl.loop_checkpoint/2"
+CHECKPOINT_FORMAT = "dronefl.loop_checkpoint/3"
 
 
 @dataclass(frozen=True)
 class LoopCheckpoint:
     """A closed-loop episode after ``step`` steps (the next step to run is ``step``).
 
-    ``settings`` are the episode's settings (:meth:`TrackConfig.settings
-    <dronefl.experiments.track.TrackConfig.settings>`) and ``scenario_hash`` its scenario's
-    content hash, to refuse resuming another episode. ``detector``, ``planner`` and ``learner``
-    are those parts' ``state()``; ``predictors`` each drone's on-board predictor weights.
-    ``planner_seconds``, ``fl_seconds`` and ``wall_seconds`` are the wall time (s) spent so far
-    planning, updating models and in all, over every process that ran the episode.
-    ``reporters``: each drone's noise estimate (``None`` unless the fusion uses reports).
-    ``label_fuser``: the labels' own filter (``None`` unless ``TrackConfig.track_psd`` gives
-    the tracks another one; ``fuser`` is then the tracks').
+    ``identity`` is the episode's (:meth:`TrackConfig.identity
+    <dronefl.experiments.track.TrackConfig.identity>`), to refuse resuming another episode.
+    ``fuser`` and ``label_fuser`` are the cloud's filters (``label_fuser`` ``None`` with one
+    filter); ``records`` and ``reporters`` each drone's onboard record and noise reporter
+    (``None`` where it has none); ``detector``, ``planner`` and ``learner`` those parts'
+    ``state()``; ``predictors`` each drone's on-board predictor weights. ``planner_seconds``,
+    ``fl_seconds`` and ``wall_seconds`` are the wall time (s) spent so far planning, updating
+    models and in all, over every process that ran the episode.
     """
 
-    settings: dict[str, str | int | float | bool]
-    scenario_hash: str
+    identity: dict[str, str | int | float]
     step: int
     world: World
     fuser: Fuser
+    label_fuser: Fuser | None
     records: list[OnboardRecord]
+    reporters: list[NoiseReporter | None]
     log: EpisodeLog
     counter: ByteCounter
     rounds: list[ClosedLoopRound]
@@ -82,9 +82,7 @@ class LoopCheckpoint:
     planner_seconds: float
     fl_seconds: float
     wall_seconds: float
-    reporters: list[NoiseReporter] | None = None
     format: str = CHECKPOINT_FORMAT
-    label_fuser: Fuser | None = None
 
 
 def save_loop_checkpoint(path: Path, checkpoint: LoopCheckpoint) -> Path:
@@ -93,12 +91,11 @@ def save_loop_checkpoint(path: Path, checkpoint: LoopCheckpoint) -> Path:
 
 
 def load_loop_checkpoint(
-    path: Path, settings: dict[str, str | int | float | bool], scenario_hash: str
+    path: Path, identity: dict[str, str | int | float]
 ) -> LoopCheckpoint | None:
     """The checkpoint at ``path`` (``None`` when there is none), which must be of the episode
-    with ``settings`` and ``scenario_hash``; raises :class:`CheckpointError` naming the file
-    when it is corrupt, of another format version or of another episode (and which setting
-    differs)."""
+    ``identity``; raises :class:`CheckpointError` naming the file when it is corrupt, of
+    another format version or of another episode (and what differs)."""
     path = Path(path)
     if not path.is_file():
         return None
@@ -111,27 +108,18 @@ def load_loop_checkpoint(
         ) from None
     if not isinstance(checkpoint, LoopCheckpoint) or checkpoint.format != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} episode checkpoint")
-    check_same_episode(path, checkpoint.settings, checkpoint.scenario_hash, settings, scenario_hash)
+    check_same_episode(path, checkpoint.identity, identity)
     return checkpoint
 
 
 def check_same_episode(
-    path: Path,
-    saved: dict[str, str | int | float | bool],
-    saved_hash: str,
-    settings: dict[str, str | int | float | bool],
-    scenario_hash: str,
+    path: Path, saved: dict[str, object], identity: dict[str, str | int | float]
 ) -> None:
-    """Raise :class:`CheckpointError` naming ``path`` and the first setting in which the
-    episode saved there (``saved`` settings, scenario content hash ``saved_hash``) differs from
-    this one's."""
-    if saved_hash != scenario_hash:
-        raise CheckpointError(
-            f"{path}: of another episode: scenario_hash is {saved_hash!r} there, "
-            f"{scenario_hash!r} here (another scenario file content)"
-        )
-    for name in sorted(set(saved) | set(settings)):
-        there, here = saved.get(name, "<unset>"), settings.get(name, "<unset>")
+    """Raise :class:`CheckpointError` naming ``path`` and the first part of ``identity`` in
+    which the episode saved there (``saved``: its identity, or a ``metrics.json`` config that
+    holds it) differs from this one."""
+    for name, here in identity.items():
+        there = saved.get(name, "<unset>")
         if there != here:
             raise CheckpointError(
                 f"{path}: of another episode: {name} is {there!r} there, {here!r} here "

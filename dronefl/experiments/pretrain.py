@@ -44,11 +44,12 @@ from dronefl.experiments.pretrain_image import (
 )
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import load_checkpoint, load_history
-from dronefl.fl.records import PRESETS, FlSettings
+from dronefl.fl.records import FlSettings, fl_settings
 from dronefl.fl.simulation import run_federated
 from dronefl.models.image import ImageModelConfig
 from dronefl.models.model import PredictorConfig
 from dronefl.progress import progress_bar
+from dronefl.settings import Setting
 
 _PACKAGE = Path(__file__).resolve().parents[1]
 PRETRAIN_SEED = 1000
@@ -65,34 +66,45 @@ IMAGE_TRAINING_CODE = ("models/image.py", "logs.py", "experiments/pretrain_image
 
 @dataclass(frozen=True)
 class PretrainSpec:
-    """What is pretrained: ``kind`` (one of :data:`KINDS`) for ``scenario``, on ``duration``
-    s of crop field recorded with seed ``recording_seed``, with windows of ``past_steps``
-    L_p -> 1 every ``stride`` samples, for ``rounds`` FL rounds (or ``rounds`` x E epochs of
-    centralized training), with the training setting ``preset`` (a key of
-    :data:`dronefl.fl.records.PRESETS`: model options, E, lr, batch and optimiser), and with
-    a run of detections hidden in a ``detection_gaps`` fraction of the training windows
-    (:func:`~dronefl.models.train.cut_detection_gaps`: the crop field hardly hides a target,
-    the orchard does; 0: the windows as recorded)."""
+    """What is pretrained: ``kind`` (one of :data:`KINDS`) for ``scenario`` as ``setting``
+    says (its model, training and pretraining sub-configs: ``pretraining.seconds`` of crop
+    field recorded with seed ``recording_seed``, windows L_p -> 1 every ``pretraining.stride``
+    samples, ``pretraining.rounds`` FL rounds, or rounds x E epochs of centralized training),
+    with a run of detections hidden in a ``detection_gaps`` fraction of the training windows
+    (:func:`~dronefl.models.train.cut_detection_gaps`; the setting's probability resolved,
+    ``auto`` chosen by :func:`~dronefl.experiments.gap_choice.resolve_gaps`)."""
 
     scenario: Scenario
+    setting: Setting
     kind: str = "dronefl"
-    past_steps: int = 10
-    stride: int = 2
-    rounds: int = 20
-    duration: float = 600.0
-    recording_seed: int = PRETRAIN_SEED
-    preset: str = "ours"
     detection_gaps: float = 0.0
+    recording_seed: int = PRETRAIN_SEED
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.detection_gaps <= 1.0:
-            raise ValueError(f"--pretrain-gaps: must be in [0, 1], got {self.detection_gaps}")
-        if self.preset not in PRESETS:
-            raise ValueError(f"--config: {self.preset!r} is not one of {', '.join(PRESETS)}")
         if self.kind not in KINDS:
             raise ValueError(f"pretrained model kind must be one of {KINDS}, got {self.kind!r}")
-        if not self.duration > 0:
-            raise ValueError(f"pretraining duration must be positive, got {self.duration}")
+        if not 0.0 <= self.detection_gaps <= 1.0:
+            raise ValueError(f"detection_gaps: must be in [0, 1], got {self.detection_gaps}")
+
+    @property
+    def duration(self) -> float:
+        """Seconds of crop field recorded."""
+        return self.setting.pretraining.seconds
+
+    @property
+    def past_steps(self) -> int:
+        """L_p of the pretrained model."""
+        return self.setting.model.past_steps
+
+    @property
+    def stride(self) -> int:
+        """Samples between training windows."""
+        return self.setting.pretraining.stride
+
+    @property
+    def rounds(self) -> int:
+        """FL rounds (or rounds x E epochs of centralized training)."""
+        return self.setting.pretraining.rounds
 
     @property
     def data_key(self) -> str:
@@ -108,19 +120,12 @@ class PretrainSpec:
         if self.kind == "image":
             raise ValueError("the image model is not trained by Flower: see image_dir")
         root = Path(folder) / self.scenario.name
-        unset = FlSettings(
-            run_dir=str(self.data_dir(folder)),
-            out_dir="",
-            method=self.kind,
-            rounds=self.rounds,
-            past_steps=self.past_steps,
-            future_steps=1,
-            stride=self.stride,
-            seed=0,
-        )
-        base = dataclasses.replace(
-            PRESETS[self.preset].apply(unset), detection_gaps=self.detection_gaps
-        )
+        field = self.scenario.field
+        base = fl_settings(
+            self.setting, self.kind, run_dir=str(self.data_dir(folder)), out_dir="",
+            rounds=self.rounds, future_steps=1, stride=self.stride, seed=0,
+            field_m=(field.width, field.height), detection_gaps=self.detection_gaps,
+        )  # fmt: skip
         key = _digest(
             [self.data_key, base.training_key(), repr(base.model), package_digest(TRAINING_CODE)]
         )
@@ -178,7 +183,10 @@ def pretrain(
             plot=False,
         )
     if spec.kind == "image":
-        return pretrain_image(spec, folder, progress)
+        return pretrain_image(
+            data, spec.model_path(folder), spec.image_model, spec.stride,
+            f"pretrain {spec.scenario.name} image", progress,
+        )  # fmt: skip
     # A pretraining stopped early (Ctrl-C, a kill) goes on from its last checkpoint: the
     # folder's key names the setting and the training code, so a checkpoint there is this run's.
     settings = dataclasses.replace(spec.settings(folder), resume=True)

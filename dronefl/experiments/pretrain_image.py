@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -24,6 +23,7 @@ from dronefl.logs import load_run
 from dronefl.models.image import (
     FrameTransformer,
     FrameWindows,
+    ImageModelConfig,
     ImageTraining,
     chronological_rows,
     evaluate_image_model,
@@ -34,36 +34,33 @@ from dronefl.models.model import count_parameters
 from dronefl.perception.recorded_frames import render_run
 from dronefl.progress import progress_bar
 
-if TYPE_CHECKING:
-    from dronefl.experiments.pretrain import PretrainSpec
-
 #: The image model's crop-field training and the share of the recording it trains on.
 IMAGE_PRETRAINING = ImageTraining()
 IMAGE_TRAIN_FRACTION = 0.8
 
 
-def pretrain_image(spec: PretrainSpec, folder: Path, progress: bool) -> dict[str, torch.Tensor]:
-    """Render the recorded crop field's frames (cached), train the image model, score it on
-    the held-out steps; write ``pretrain.json`` (losses, held-out masked MSE per drone in m^2,
-    parameters, s per epoch) and then the weights, ``image_model.npz``. Weights already there
-    are returned as they are. The recording must exist (:func:`~dronefl.experiments.pretrain.
-    pretrain` records it)."""
-    path = spec.model_path(folder)
+def pretrain_image(
+    data: Path, path: Path, config: ImageModelConfig, stride: int, name: str, progress: bool
+) -> dict[str, torch.Tensor]:
+    """Render the frames of the crop field recorded in ``data`` (cached), train the image
+    model ``config`` on windows every ``stride`` steps, score it on the held-out steps; write
+    ``pretrain.json`` (losses, held-out masked MSE per drone in m^2, parameters, s per epoch)
+    beside ``path`` and then the weights, ``path``. Weights already there are returned as they
+    are; ``name`` labels the progress bar."""
     if path.is_file():
         return load_image_state(path)
-    data = spec.data_dir(folder)
     logs, truth = load_run(data)
-    config = spec.image_model
     rendered = render_run(data, config.frame_px, progress=progress)
-    sets = recorded_frame_windows(logs, truth, rendered.frames, rendered.drone_ids, spec.past_steps)
+    sets = recorded_frame_windows(
+        logs, truth, rendered.frames, rendered.drone_ids, config.past_steps
+    )
     train, held_out = [], []
     for windows in sets.values():
-        rows, rest = chronological_rows(windows, spec.stride, IMAGE_TRAIN_FRACTION)
+        rows, rest = chronological_rows(windows, stride, IMAGE_TRAIN_FRACTION)
         train.append(windows.subset(rows))
         held_out.append(windows.subset(rest))
     torch.manual_seed(IMAGE_PRETRAINING.seed)
     model = FrameTransformer(config)
-    name = f"pretrain {spec.scenario.name} image"
     with progress_bar(name, IMAGE_PRETRAINING.epochs, progress) as advance:
         stats = train_image_model(
             model, FrameWindows.concat(train), IMAGE_PRETRAINING, on_epoch=lambda _: advance(1)
@@ -86,5 +83,5 @@ def pretrain_image(spec: PretrainSpec, folder: Path, progress: bool) -> dict[str
 
 def load_image_state(path: Path) -> dict[str, torch.Tensor]:
     """The image model's weights saved by :func:`pretrain_image`."""
-    with np.load(path) as data:
+    with np.load(path, allow_pickle=False) as data:
         return {k: torch.from_numpy(data[k].copy()) for k in data.files}

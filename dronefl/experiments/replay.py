@@ -1,18 +1,20 @@
-"""Replay: re-fuse and smooth an episode's recorded predictions with any fusion settings.
+"""Replay: re-fuse and smooth an episode's recorded predictions with any setting.
 
 ``dronefl track`` saves every drone's prediction of every target (``episode.npz``: arrays
 ``prediction`` ``(K, M, N, 2)``, ``target_position`` and ``track_position`` ``(K+1, N, 2)``,
-``t`` ``(K+1,)``; ``metrics.json`` names the scenario). :func:`replay` feeds the same stream to a
-:class:`~dronefl.tracking.Fuser` built from a :class:`~dronefl.tracking.FusionConfig`, makes the
-pseudo-labels of the whole episode, and compares, per target, the fused (filtered) track and
-the labels with each drone's own predictions, all against the truth. The drones flew under the
-recorded episode's fusion, so a replay changes the estimates, not the flight.
+``t`` ``(K+1,)``; ``metrics.json`` names the scenario and holds the setting it flew).
+:func:`replay_setting` feeds the same stream to the cloud's filters as a setting makes them
+(:func:`~dronefl.tracking.fusion.cloud_fusion`), makes the pseudo-labels of the whole
+episode, and compares, per target, the fused (filtered) track and the labels with each
+drone's own predictions, all against the truth; :func:`replay` does the same with any
+filters (:class:`~dronefl.tracking.fusion.CloudFusion`). The drones flew under the recorded
+episode's fusion, so a replay changes the estimates, not the flight.
 
-With ``noise_split = "reported"`` the drones' own noise reports are rebuilt from their onboard
-records in the episode's ``checkpoint.pkl`` (:func:`drone_reports`): the boxes and odometry
-each drone stored, the same data from which it would have computed them in flight; with
-``correct_bias`` the predictions are first corrected as the drones would have corrected them
-(:mod:`dronefl.tracking.reports`), which needs an episode flown without the correction.
+What a setting has the drones send beyond what they sent in flight is rebuilt from their
+onboard records in the episode's checkpoint (:func:`episode_records`): the noise reports
+(:func:`drone_reports`) and the bias correction from the boxes and odometry each drone
+stored, the same data from which it would have computed them in flight, and with
+``drone.detected_only`` only the predictions made while the drone detected the target.
 
 A ``dronefl deploy up`` folder replays too: its ``episode.npz`` holds the predictions the cloud
 received and its ``reports.npz`` (:data:`REPORTS_NAME`) the noise reports that came with
@@ -30,10 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from dronefl.config import Scenario, load_scenario
-from dronefl.experiments.episode import all_sent, received_predictions
 from dronefl.io import atomic_write_json, atomic_write_text
-from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement, fusion_config
-from dronefl.tracking.fusion import check_track_psd, planner_filter_config, update_filters
+from dronefl.results.episode import REPORTS_NAME, all_sent, received_predictions
+from dronefl.settings import Setting, SettingError
+from dronefl.tracking import Fuser, PositionMeasurement
+from dronefl.tracking.fusion import CloudFusion, cloud_fusion, update_filters
 from dronefl.tracking.labels import DEFAULT_MAX_STD, make_labels
 from dronefl.tracking.reports import (
     forecast_residual_reports,
@@ -52,18 +55,12 @@ class Episode:
 
     ``prediction`` ``(K, M, N, 2)`` m: drone ``i``'s prediction at step ``k`` of target ``j``'s
     position at ``k + 1`` (NaN: none); ``target_position`` ``(K+1, N, 2)`` m: the truth;
-    ``track_position`` ``(K+1, N, 2)`` m: the fused tracks as flown; ``t`` ``(K+1,)`` s;
-    ``bias_corrected``: the drones corrected their predictions' bias in flight (the
-    predictions are those they sent); ``sent`` ``(K, M, N)`` bool: which predictions reached
-    the cloud (all but those withheld by ``track --detected-only``; every finite one for an
-    episode recorded before it existed); ``flown_fusion`` the fusion settings it was flown
-    with (``metrics.json``'s ``fusion_config``; ``None`` for an episode that does not record
-    them) and ``detected_only`` whether it was flown with ``track --detected-only``;
-    ``flown_track_psd`` the q of the second filter the planner flew on (``metrics.json``'s
-    ``track_psd``; ``None``: one filter); ``received_reports`` ``(K, M, N, 2, 2)`` m^2 the
-    noise reports a deployed cloud received (:data:`REPORTS_NAME`; ``None`` for a ``track``
-    episode), whose ``prediction`` then holds what the cloud received: nothing is withheld
-    from it or rebuilt.
+    ``track_position`` ``(K+1, N, 2)`` m: the planner's tracks as flown; ``t`` ``(K+1,)`` s;
+    ``sent`` ``(K, M, N)`` bool: which predictions reached the cloud; ``setting`` the setting
+    it was flown with (``None`` for an episode that does not record one);
+    ``received_reports`` ``(K, M, N, 2, 2)`` m^2 the noise reports a deployed cloud received
+    (:data:`REPORTS_NAME`; ``None`` for a ``track`` episode), whose ``prediction`` then holds
+    what the cloud received: nothing is withheld from it or rebuilt.
     """
 
     path: Path
@@ -72,21 +69,29 @@ class Episode:
     target_position: np.ndarray
     track_position: np.ndarray
     t: np.ndarray
-    bias_corrected: bool = False
     sent: np.ndarray | None = None
-    net_reports: bool = False
-    flown_fusion: FusionConfig | None = None
-    detected_only: bool = False
-    flown_track_psd: float | None = None
+    setting: Setting | None = None
     received_reports: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.sent is None:
             object.__setattr__(self, "sent", all_sent(self.prediction))
 
+    @property
+    def bias_corrected(self) -> bool:
+        """Whether the drones corrected their predictions' bias in flight (the predictions
+        recorded are those they sent)."""
+        return self.setting is not None and self.setting.drone.correct_bias
+
+    @property
+    def withheld(self) -> bool:
+        """Whether the drones sent only what they detected in flight (``sent`` says so)."""
+        return self.setting is not None and self.setting.drone.detected_only
+
 
 def load_episode(folder: str | Path) -> Episode:
-    """Read ``episode.npz`` and the scenario named by ``metrics.json`` in ``folder``."""
+    """Read ``episode.npz`` and the scenario and setting ``metrics.json`` records in
+    ``folder``."""
     folder = Path(folder)
     npz, meta = folder / "episode.npz", folder / "metrics.json"
     for path in (npz, meta):
@@ -96,16 +101,24 @@ def load_episode(folder: str | Path) -> Episode:
             )
     try:
         config = json.loads(meta.read_text())["config"]
-        name = config["scenario"] if "scenario" in config else f"case{int(config['case'])}"
-    except (ValueError, KeyError, TypeError) as exc:
+        name = str(config["scenario"])
+    except (ValueError, KeyError, TypeError, UnicodeDecodeError) as exc:
         raise EpisodeError(f"{meta}: no config naming the scenario ({exc})") from None
     scenario = load_scenario(name)
+    setting = None
+    if "setting_values" in config:
+        try:
+            setting = Setting.from_dict(config["setting_values"], str(config.get("setting_name")))
+        except SettingError as exc:
+            raise EpisodeError(f"{meta}: {exc}") from None
     try:
-        with np.load(npz) as data:
+        with np.load(npz, allow_pickle=False) as data:
             arrays = {k: np.asarray(data[k], dtype=float) for k in _ARRAYS}
             sent = np.asarray(data["sent"], dtype=bool) if "sent" in data else None
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, EOFError) as exc:
         raise EpisodeError(f"{npz}: unreadable or missing an array ({exc})") from None
+    except Exception as exc:  # a damaged zip raises zipfile's own errors
+        raise EpisodeError(f"{npz}: not a readable episode ({type(exc).__name__})") from None
     k, m, n = arrays["prediction"].shape[:3]
     expected = {
         "prediction": (k, len(scenario.drones), len(scenario.targets), 2),
@@ -116,16 +129,15 @@ def load_episode(folder: str | Path) -> Episode:
     for key, shape in expected.items():
         if arrays[key].shape != shape:
             raise EpisodeError(f"{npz}: {key} has shape {arrays[key].shape}, expected {shape}")
+    if k < 1:
+        raise EpisodeError(f"{npz}: holds no step")
     if sent is not None and sent.shape != expected["prediction"][:3]:
         shape = expected["prediction"][:3]
         raise EpisodeError(f"{npz}: sent has shape {sent.shape}, expected {shape}")
     received = _received_reports(folder / REPORTS_NAME, (k, m, n, 2, 2))
-    corrected, net = bool(config.get("correct_bias")), bool(config.get("net_reports"))
     return Episode(
-        folder, scenario, **arrays, bias_corrected=corrected, sent=sent, net_reports=net,
-        flown_fusion=_flown_fusion(config), detected_only=bool(config.get("detected_only")),
-        flown_track_psd=config.get("track_psd"), received_reports=received,
-    )  # fmt: skip
+        folder, scenario, **arrays, sent=sent, setting=setting, received_reports=received
+    )
 
 
 def _received_reports(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
@@ -134,29 +146,16 @@ def _received_reports(path: Path, shape: tuple[int, ...]) -> np.ndarray | None:
     if not path.is_file():
         return None
     try:
-        with np.load(path) as data:
+        with np.load(path, allow_pickle=False) as data:
             noise = np.asarray(data["noise"], dtype=float)
-    except (OSError, ValueError, KeyError) as exc:
+    except Exception as exc:  # unreadable, truncated, or without the array
         raise EpisodeError(f"{path}: unreadable or without its noise array ({exc})") from None
     if noise.shape != shape:
         raise EpisodeError(f"{path}: noise has shape {noise.shape}, expected {shape}")
     return noise
 
 
-def _flown_fusion(config: dict) -> FusionConfig | None:
-    """The :class:`FusionConfig` an episode's ``metrics.json`` config records (its
-    ``fusion_config`` JSON, without ``noise_split`` when that was ``adaptive``); ``None``
-    when it records none or settings this version does not know."""
-    try:
-        return FusionConfig(**json.loads(config["fusion_config"]))
-    except (KeyError, TypeError, ValueError):
-        return None
-
-
 _ARRAYS = ("prediction", "target_position", "track_position", "t")
-#: The file of a deployed episode with the noise reports the cloud received
-#: (``noise`` ``(K, M, N, 2, 2)`` m^2, NaN where none came; written by ``deploy up``).
-REPORTS_NAME = "reports.npz"
 
 
 @dataclass(frozen=True)
@@ -389,13 +388,12 @@ class ReplayResult:
     predicted the target at the step before (:data:`VIEWS`; ``"0"`` is coasting on the motion
     model alone), each :class:`ViewsError`; ``correct_bias``: the drones' predictions were
     bias-corrected before the fusion; ``detected_only``: only the predictions made while the
-    drone detected the target were fused; ``track_psd``: the fused tracks (and the gating
-    counts) are those of a second filter with this q, the planner's, the labels the
-    ``fusion`` filter's (``None``: one filter)."""
+    drone detected the target were fused. The fused tracks and the gating counts are the
+    planner's filter's (``fusion.tracks``), the labels the fusion filter's."""
 
     episode: str
     scenario: str
-    fusion: FusionConfig
+    fusion: CloudFusion
     labels: str
     max_std: float
     targets: tuple[TargetReplay, ...]
@@ -408,40 +406,11 @@ class ReplayResult:
     by_views: dict[str, ViewsError]
     correct_bias: bool = False
     detected_only: bool = False
-    track_psd: float | None = None
 
     @property
     def gated_fraction(self) -> float:
         """Fraction of the measurements that the gate rejected."""
         return self.rejections / max(self.measurements, 1)
-
-
-def replay_config(scenario: Scenario, **overrides: object) -> FusionConfig:
-    """The closed loop's fusion settings for ``scenario`` with ``overrides`` (``None`` values
-    keep the default) applied; raises ``ValueError`` naming a bad field."""
-    chosen = {k: v for k, v in overrides.items() if v is not None}
-    if "gate" in overrides and overrides["gate"] is None:
-        chosen["gate"] = None
-    method = chosen.pop("method", "robust")
-    try:
-        return replace(fusion_config(scenario, method), **chosen)
-    except TypeError as exc:
-        raise ValueError(f"fusion settings: {exc}") from None
-
-
-def flown_config(episode: Episode, **overrides: object) -> FusionConfig:
-    """The fusion settings ``episode`` was flown with, ``overrides`` (FusionConfig fields)
-    applied; raises :class:`EpisodeError` for an episode that does not record them and
-    ``ValueError`` naming a bad field."""
-    if episode.flown_fusion is None:
-        raise EpisodeError(
-            f"{episode.path / 'metrics.json'}: records no fusion settings this version reads; "
-            "replay it without --as-flown, giving the fusion options"
-        )
-    try:
-        return replace(episode.flown_fusion, **overrides)
-    except TypeError as exc:
-        raise ValueError(f"fusion settings: {exc}") from None
 
 
 def episode_records(episode: Episode) -> list:
@@ -475,26 +444,20 @@ def withhold_undetected(episode: Episode, records: list | None = None) -> Episod
 
 
 def drone_reports(
-    episode: Episode, correct_bias: bool = False, net: bool = False, records: list | None = None
+    episode: Episode, correct_bias: bool = False, records: list | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The predictions each drone would have sent, ``(K, M, N, 2)`` m (less its bias estimate
     with ``correct_bias``; NaN where it sent none), and the noise it would have sent with each
-    (:mod:`dronefl.tracking.reports`; net of its projection noise with ``net`` or for an episode
-    flown so), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
-    and odometry) in the episode's ``checkpoint.pkl``; box centres are back-projected onto the
-    plane at half the vehicle's height; ``records`` as :func:`withhold_undetected`'s."""
+    (:mod:`dronefl.tracking.reports`), ``(K, M, N, 2, 2)`` m², from the onboard records (boxes
+    and odometry) in the episode's checkpoint; box centres are back-projected onto the plane
+    at half the vehicle's height; ``records`` as :func:`withhold_undetected`'s."""
     camera, ground_z = ground_plane(episode.scenario)
     records = episode_records(episode) if records is None else records
     detected = [
         record_ground_positions(camera, record, ground_z, slice(0, record.steps))
         for record in records
     ]
-    return forecast_residual_reports(
-        sent_predictions(episode),
-        detected,
-        correct_bias=correct_bias,
-        net=net or episode.net_reports,
-    )
+    return forecast_residual_reports(sent_predictions(episode), detected, correct_bias=correct_bias)
 
 
 def sent_predictions(episode: Episode) -> np.ndarray:
@@ -502,39 +465,61 @@ def sent_predictions(episode: Episode) -> np.ndarray:
     return received_predictions(episode.prediction, episode.sent)
 
 
+def replay_setting(
+    episode: Episode, setting: Setting, max_std: float = DEFAULT_MAX_STD
+) -> ReplayResult:
+    """Replay ``episode`` as the cloud of ``setting`` would have fused it: its filters
+    (:func:`~dronefl.tracking.fusion.cloud_fusion`), its labels, and the drones sending what
+    its ``[drone]`` sub-config says (rebuilt from their records where the episode was flown
+    otherwise). An episode flown with the bias correction cannot be replayed without it
+    (:class:`EpisodeError`): only the corrected predictions were sent."""
+    drone = setting.drone
+    if episode.bias_corrected and not drone.correct_bias:
+        raise EpisodeError(
+            f"{episode.path}: its drones corrected their predictions in flight; replay it with "
+            "drone.correct_bias = true (--set drone.correct_bias=true)"
+        )
+    filters = cloud_fusion(setting.fusion, drone.noise_reports, episode.scenario)
+    return replay(
+        episode,
+        filters,
+        labels=setting.learning.labels,
+        max_std=max_std,
+        correct_bias=drone.correct_bias and not episode.bias_corrected,
+        detected_only=drone.detected_only and not episode.withheld,
+    )
+
+
 def replay(
     episode: Episode,
-    config: FusionConfig,
+    filters: CloudFusion,
     labels: str = "smoothed",
     max_std: float = DEFAULT_MAX_STD,
     correct_bias: bool = False,
     detected_only: bool = False,
-    net_reports: bool = False,
-    track_psd: float | None = None,
 ) -> ReplayResult:
-    """Re-fuse ``episode``'s predictions with ``config`` and make its ``labels``; with
-    ``correct_bias`` the drones' predictions are first corrected as in flight
+    """Re-fuse ``episode``'s predictions with the cloud's ``filters`` and make its ``labels``;
+    with ``correct_bias`` the drones' predictions are first corrected as in flight
     (:meth:`~dronefl.tracking.reports.NoiseReporter.correct`); with ``detected_only`` only
     the predictions made while the drone detected the target are fused
-    (:func:`withhold_undetected`); with ``net_reports`` the reports are rebuilt net of the
-    drones' projection noise (as for an episode flown with it); with ``track_psd`` the fused
-    tracks are a second filter's with that q, the labels still ``config``'s filter's, as the
-    closed loop flies ``--track-psd`` (:func:`~dronefl.tracking.fusion.planner_forecast`).
-    Each drone's MSE is that of the predictions fused."""
+    (:func:`withhold_undetected`); with ``filters.fusion.noise_split = "reported"`` the
+    drones' reports are rebuilt from their records (a deployed episode's: as received). The
+    fused tracks are the planner's filter's, the labels the fusion filter's, as the closed loop
+    flies them. Each drone's MSE is that of the predictions fused."""
     scenario = episode.scenario
+    config = filters.fusion
     if correct_bias and episode.bias_corrected:
         raise EpisodeError(
             f"{episode.path}: its predictions were corrected in flight already; replay it "
-            "without --correct-bias"
+            "without correcting them again"
         )
     rebuilt = config.noise_split == "reported" or correct_bias  # from the drones' records
     reports = None
     if episode.received_reports is not None:  # deployed: as received, nothing to rebuild
-        if correct_bias or net_reports:
+        if correct_bias:
             raise EpisodeError(
                 f"{episode.path}: a deployed episode holds what the cloud received (the "
-                "drones' records stay on the drones); replay it without --correct-bias and "
-                "--net-reports"
+                "drones' records stay on the drones); replay it with the correction it flew"
             )
         if config.noise_split == "reported":
             reports = episode.received_reports
@@ -543,16 +528,17 @@ def replay(
     if detected_only:
         episode = withhold_undetected(episode, records)
     if rebuilt:
-        sent, reports = drone_reports(episode, correct_bias, net_reports, records)
+        sent, reports = drone_reports(episode, correct_bias, records)
         episode = replace(episode, prediction=sent)
         if config.noise_split != "reported":
             reports = None
     else:
         episode = replace(episode, prediction=sent_predictions(episode))
-    check_track_psd("--track-psd", track_psd)
-    fuser = Fuser(scenario.target_ids, scenario.drone_ids, planner_filter_config(config, track_psd))
+    fuser = Fuser(scenario.target_ids, scenario.drone_ids, filters.tracks)
     label_fuser = (
-        None if track_psd is None else Fuser(scenario.target_ids, scenario.drone_ids, config)
+        None
+        if filters.planner is None
+        else Fuser(scenario.target_ids, scenario.drone_ids, filters.fusion)
     )
     n_steps = episode.prediction.shape[0]
     fused = np.full_like(episode.track_position, np.nan)
@@ -607,7 +593,7 @@ def replay(
     return ReplayResult(
         str(episode.path),
         scenario.name,
-        config,
+        filters,
         labels,
         max_std,
         tuple(targets),
@@ -620,7 +606,6 @@ def replay(
         views_errors(fused, truth, seen),
         correct_bias,
         detected_only,
-        track_psd,
     )
 
 
@@ -650,22 +635,23 @@ def format_result(result: ReplayResult) -> str:
     head += ["fused, best's steps", "fused / best", "oracle / best", "temporal oracle / best"]
     head += [f"{result.labels} label", "label kept"]
     head += ["as flown"]
+    fusion = result.fusion.fusion
+    planner = result.fusion.planner
     lines = [
         f"Replay of {result.episode} ({result.scenario}), fusion method "
-        f"{result.fusion.method!r}, q = {result.fusion.acceleration_psd} m²/s³"
+        f"{fusion.method!r}, q = {fusion.acceleration_psd} m²/s³"
         + (
-            f" (the fused tracks: a second filter with q = {result.track_psd})"
-            if result.track_psd is not None
+            f" (the fused tracks: a second filter with q = {planner.acceleration_psd})"
+            if planner is not None
             else ""
         )
         + (", the drones' predictions bias-corrected" if result.correct_bias else "")
         + (", only those made while the drone detected the target" if result.detected_only else "")
         + (
-            f", the fused tracks' output a {len(result.fusion.temporal_kernel)}-tap temporal kernel"
-            if result.fusion.temporal_kernel is not None
+            f", the fused tracks' output a {len(fusion.temporal_kernel)}-tap temporal kernel"
+            if fusion.temporal_kernel is not None
             else ""
         )
-        + (", R scaled by window coverage" if result.fusion.coverage_noise is not None else "")
         + "; MSE in m².",
         "",
         "| " + " | ".join(head) + " |",

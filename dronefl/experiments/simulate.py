@@ -20,7 +20,7 @@ from dronefl.config import Environment, Scenario
 from dronefl.logs import GroundTruth, OnboardLog
 from dronefl.perception import make_detector
 from dronefl.progress import progress_bar
-from dronefl.results import save_result
+from dronefl.serialize import save_result
 from dronefl.sim.pilot import PilotController
 from dronefl.sim.world import World
 

@@ -26,18 +26,16 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 from flwr.app import Array, ArrayRecord, MetricRecord, RecordDict
 
-from dronefl.fl.records import ARRAYS_KEY, METRICS_KEY, WEIGHTS_KEY, FlSettings, SettingsError
+from dronefl.fl.fault_list import EVALUATE_KINDS, TRAIN_KINDS, parse_faults
+from dronefl.fl.records import ARRAYS_KEY, METRICS_KEY, WEIGHTS_KEY, FlSettings
 from dronefl.logs import OnboardLog
 
-TRAIN_KINDS = ("raise", "hang", "nan", "absurd", "shape")
-EVALUATE_KINDS = ("eval-raise", "eval-nan")
-KINDS = TRAIN_KINDS + EVALUATE_KINDS
 #: The value every weight takes in an ``absurd`` update.
 ABSURD_WEIGHT = 3e4
 #: How much longer than the round timeout a ``hang`` drone takes to answer, s.
@@ -46,32 +44,6 @@ HANG_MARGIN = 1.0
 
 class InjectedFault(RuntimeError):
     """The failure an injected ``raise`` fault raises inside a ClientApp."""
-
-
-@dataclass(frozen=True)
-class Fault:
-    """Drone ``drone_id`` misbehaves as ``kind`` in global round ``server_round``."""
-
-    server_round: int
-    drone_id: int
-    kind: str
-
-
-def parse_faults(text: str) -> tuple[Fault, ...]:
-    """``"2:1:raise,3:2:nan"`` -> faults; raises :class:`SettingsError` naming the bad item."""
-    faults = []
-    for item in filter(None, (part.strip() for part in text.split(","))):
-        parts = item.split(":")
-        try:
-            server_round, drone_id, kind = int(parts[0]), int(parts[1]), parts[2]
-        except (IndexError, ValueError):
-            raise SettingsError(f"faults: {item!r} is not ROUND:DRONE:KIND") from None
-        if len(parts) != 3 or kind not in KINDS or server_round < 1:
-            raise SettingsError(
-                f"faults: {item!r} needs a round >= 1 and a kind of {', '.join(KINDS)}"
-            )
-        faults.append(Fault(server_round, drone_id, kind))
-    return tuple(faults)
 
 
 def inject(

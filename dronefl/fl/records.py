@@ -20,10 +20,12 @@ import numpy as np
 import torch
 from flwr.app import Array, ArrayRecord, ConfigRecord, Message, MetricRecord, RecordDict
 
+from dronefl.fl.fault_list import parse_faults
 from dronefl.fl.methods import METHODS, Method
 from dronefl.models.model import ADAIN_SITES, PredictorConfig, TrajectoryTransformer, build_model
 from dronefl.models.train import OPTIMIZERS, TrainConfig
 from dronefl.models.windows import PAPER_FIELD_M, WindowSpec
+from dronefl.settings import AGGREGATIONS, DRIFT_CORRECTIONS, WEIGHT_DTYPES, Setting
 
 #: Record keys (Flower's strategies use "arrays", "config", "num-examples", "proximal-mu").
 ARRAYS_KEY = "arrays"
@@ -43,14 +45,6 @@ CONTROL_KEY = "control"
 #: Where a FedPer drone keeps its personal output head (``context.state``).
 PERSONAL_KEY = "personal-head"
 LABEL_SOURCES = ("ground_truth", "tracks")
-#: Number formats the model weights may travel in (``--weights-dtype``).
-WEIGHT_DTYPES = ("float32", "float16")
-#: How the cloud combines the screened updates (``--aggregation``): the sample-weighted mean
-#: (FedAvg), or one of Flower's robust rules (see :mod:`dronefl.fl.strategies`).
-AGGREGATIONS = ("mean", "median", "trimmed-mean", "krum")
-#: Client-drift corrections (``--drift-correction``): none (FedAvg's local steps), or
-#: SCAFFOLD's control variates (Karimireddy et al., 2020, option II).
-DRIFT_CORRECTIONS = ("none", "scaffold")
 #: The factor on the lr in the last rounds of a stepped schedule (``lr_step_at`` < 1).
 LR_STEP_FACTOR = 0.1
 
@@ -98,9 +92,8 @@ class FlSettings:
     rounds trained at ``lr``, the rest at ``lr`` x :data:`LR_STEP_FACTOR` (1.0: a constant
     lr; see :meth:`lr_of`); ``detection_gaps`` the probability that a training window has a
     run of its detections hidden (:func:`~dronefl.models.train.cut_detection_gaps`; 0: none,
-    the closed loop's online rounds, whose orchard windows have real gaps). The
-    defaults are the setting the closed loop's models are pretrained with; :data:`PRESETS`
-    names the paper's and the later ``metric`` and ``metric-sgd`` ones.
+    the closed loop's online rounds, whose orchard windows have real gaps). A setting's
+    model and training become these in :func:`fl_settings`.
     """
 
     run_dir: str
@@ -175,9 +168,10 @@ class FlSettings:
         if not self.round_timeout > 0:
             raise SettingsError(f"round-timeout: must be > 0 s, got {self.round_timeout}")
         if self.faults:
-            from dronefl.fl.faults import parse_faults  # imports this module
-
-            parse_faults(self.faults)
+            try:
+                parse_faults(self.faults)
+            except ValueError as exc:
+                raise SettingsError(str(exc)) from None
         if not (self.field_width > 0 and self.field_height > 0):
             raise SettingsError("field-width and field-height must be > 0 m")
         try:
@@ -263,15 +257,8 @@ class FlSettings:
     def training_key(self) -> dict[str, str | int | float | bool]:
         """Every setting that decides what a run trains, i.e. all but where it reads and
         writes and whether it resumes (:data:`WHERE_FIELDS`): two runs with equal keys train
-        the same weights. A constant lr (``lr_step_at`` 1.0) leaves ``lr_step_at`` out, so
-        the folders trained before the lr step existed keep their key, and no detection gaps
-        leaves ``detection_gaps`` out alike."""
-        key = {k: v for k, v in asdict(self).items() if k not in WHERE_FIELDS}
-        if self.lr_step_at == 1.0:
-            del key["lr_step_at"]
-        if self.detection_gaps == 0.0:
-            del key["detection_gaps"]
-        return key
+        the same weights."""
+        return {k: v for k, v in asdict(self).items() if k not in WHERE_FIELDS}
 
     def to_run_config(self) -> dict[str, str | int | float | bool]:
         """As a Flower run config (kebab-case keys, as in ``pyproject.toml``)."""
@@ -517,112 +504,75 @@ class RoundRecord:
             raise SettingsError(f"round history entry: bad or missing field ({exc})") from None
 
 
-_PRESET_FIELDS = (
-    "epochs",
-    "lr",
-    "batch_size",
-    "adain_sites",
-    "head_style_init",
-    "box_size",
-    "optimizer",
-    "drift_correction",
-    "lr_step_at",
-)
-
-
-@dataclass(frozen=True)
-class Preset:
-    """A named training setting: local epochs E, the optimiser's ``lr``, the ``batch_size``,
-    where AdaIN sits (``adain_sites``, ``head_style_init``), how boxes are read (``box_size``)
-    the local ``optimizer`` and the ``drift_correction``; see :class:`FlSettings` for each."""
-
-    name: str
-    epochs: int
-    lr: float
-    batch_size: int
-    adain_sites: str
-    head_style_init: str
-    box_size: str
-    optimizer: str
-    drift_correction: str = "none"
-    lr_step_at: float = 1.0
-
-    def apply(self, settings: FlSettings) -> FlSettings:
-        """``settings`` with this preset's training setting (the drift correction only for
-        FedAvg-based federated methods: FedProx is an alternative to it, and methods trained in
-        the cloud or alone have no drift to correct)."""
-        values = {k: getattr(self, k) for k in _PRESET_FIELDS}
-        spec = settings.method_spec
-        if spec.proximal or not spec.federated:
-            values["drift_correction"] = "none"
-        return replace(settings, **values)
-
-
-def _default(name: str) -> object:
-    return next(f.default for f in fields(FlSettings) if f.name == name)
-
-
-#: ``ours``: the defaults of :class:`FlSettings`, the closed loop's (chosen on recordings with
-#: seeds >= 10); ``paper``: the paper's setting (E = 10, Adam 1e-3, Eq. 6 AdaIN after every
-#: encoder layer, starting as plain normalisation), as first implemented here; ``metric``:
-#: ``ours`` with box sizes read in proportion to the ground size and batch 64 (chosen on the
-#: tuning recording with seed 10, validation windows only; docs/fl.md); ``metric-sgd``: ``metric``
-#: with SGD (momentum 0.9, lr 3e-4) instead of Adam on the drones and in the pooled baselines
-#: (chosen on the tuning recording with seed 12, validation windows only; docs/fl.md);
-#: ``metric-scaffold``: ``metric-sgd`` with SCAFFOLD's drift correction (chosen on the Case 2
-#: tuning recordings with seeds 10 and 11, validation windows only; docs/fl.md);
-#: ``metric-scaffold-step``: ``metric-scaffold`` with the lr x 0.1 in the last fifth of the
-#: rounds (chosen on the Case 3 tuning recordings with seeds 10-12, validation windows only;
-#: docs/fl.md); ``metric-scaffold-step-lr6e-4``: ``metric-scaffold-step`` with twice the lr, 6e-4
-#: (3e-4 x 3 diverges; chosen on the same recordings, validation windows only; docs/fl.md).
-PRESETS: dict[str, Preset] = {
-    "ours": Preset("ours", *(_default(k) for k in _PRESET_FIELDS)),
-    "paper": Preset("paper", 10, 1e-3, 128, "encoder", "identity", "image", "adam"),
-    "metric": Preset("metric", 10, 1e-3, 64, "encoder,head", "altitude", "metric", "adam"),
-    "metric-sgd": Preset("metric-sgd", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd"),
-    "metric-scaffold": Preset(
-        "metric-scaffold", 10, 3e-4, 64, "encoder,head", "altitude", "metric", "sgd", "scaffold"
-    ),
-}
-PRESETS["metric-scaffold-step"] = replace(
-    PRESETS["metric-scaffold"], name="metric-scaffold-step", lr_step_at=0.8
-)
-PRESETS["metric-scaffold-step-lr6e-4"] = replace(
-    PRESETS["metric-scaffold-step"], name="metric-scaffold-step-lr6e-4", lr=6e-4
-)
-
-
-def closed_loop_settings(
-    preset: str,
+def fl_settings(
+    setting: Setting,
     method: str,
     *,
-    past_steps: int,
+    run_dir: str,
+    out_dir: str,
+    rounds: int,
+    future_steps: int,
     stride: int,
-    epochs: int,
-    lr: float,
     seed: int,
+    field_m: tuple[float, float],
+    epochs: int | None = None,
+    **rest: object,
+) -> FlSettings:
+    """The Flower settings of ``method`` trained as ``setting`` says (its model and training
+    sub-configs) for ``rounds`` rounds of windows L_p -> ``future_steps`` every ``stride``
+    samples, seeded by ``seed``, in a field of ``field_m`` = (width, height) m; ``epochs``
+    replaces the training's E (the closed loop's online rounds); ``rest`` are further
+    :class:`FlSettings` fields (``labels``, ``train_fraction``, ``resume``, ``faults``, ...).
+    SCAFFOLD's drift correction applies to FedAvg-based federated methods only: FedProx is an
+    alternative to it, and methods trained in the cloud or alone have no drift to correct."""
+    training, model = setting.training, setting.model
+    spec = METHODS[method]
+    drift = "none" if spec.proximal or not spec.federated else training.drift_correction
+    return FlSettings(
+        run_dir,
+        out_dir,
+        method=method,
+        rounds=rounds,
+        past_steps=model.past_steps,
+        future_steps=future_steps,
+        stride=stride,
+        epochs=training.epochs if epochs is None else epochs,
+        lr=training.lr,
+        batch_size=training.batch_size,
+        proximal_mu=training.proximal_mu,
+        seed=seed,
+        weights_dtype=training.weights_dtype,
+        aggregation=training.aggregation,
+        field_width=field_m[0],
+        field_height=field_m[1],
+        adain_sites=",".join(model.adain_sites),
+        head_style_init=model.head_style_init,
+        box_size=model.box_size,
+        optimizer=training.optimizer,
+        drift_correction=drift,
+        lr_step_at=training.lr_step_at,
+        **rest,  # type: ignore[arg-type]
+    )
+
+
+def online_settings(
+    setting: Setting,
+    method: str,
+    seed: int,
+    field_m: tuple[float, float],
     run_dir: str = "",
     out_dir: str = "",
-    weights_dtype: str = "float32",
 ) -> FlSettings:
     """The settings of a closed-loop episode's model updates, shared by ``dronefl track`` and
-    the deployment's cloud (``dronefl cloud``): ``preset``'s training setting (a key of
-    :data:`PRESETS`: model options, batch, optimiser, drift correction) for ``method``, with
-    the episode's windows (``past_steps`` L_p -> L_f = 1, one every ``stride`` samples), E =
-    ``epochs``, ``lr`` and ``seed``, the fused tracks as labels and every recorded window
-    trained on (no test split, no federated evaluation)."""
-    if preset not in PRESETS:
-        raise SettingsError(f"--config: {preset!r} is not one of {', '.join(PRESETS)}")
-    base = FlSettings(run_dir, out_dir, method=method, future_steps=1)
+    the deployment's cloud: :func:`fl_settings` with the learning sub-config's windows (L_f =
+    1, one every ``learning.stride`` samples) and E, the fused tracks as labels, every
+    recorded window trained on (no test split, no federated evaluation) and a constant lr."""
+    learning = setting.learning
     return replace(
-        PRESETS[preset].apply(base),
-        past_steps=past_steps,
-        stride=stride,
-        epochs=epochs,
-        lr=lr,
-        seed=seed,
-        labels="tracks",
-        weights_dtype=weights_dtype,
-        train_fraction=1.0,
+        fl_settings(
+            setting, method, run_dir=run_dir, out_dir=out_dir, rounds=1, future_steps=1,
+            stride=learning.stride, seed=seed, field_m=field_m, epochs=learning.epochs,
+            labels="tracks", train_fraction=1.0,
+        ),
         lr_step_at=1.0,
-    )
+    )  # fmt: skip

@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, ClassVar
 import numpy as np
 import torch
 
-from dronefl.fl.records import FlSettings, closed_loop_settings
+from dronefl.fl.records import FlSettings, online_settings
 from dronefl.models.online import OnboardRecord
+from dronefl.settings import Setting
 
 if TYPE_CHECKING:
     from dronefl.fl.server_app import RoundDriver
@@ -37,42 +38,26 @@ if TYPE_CHECKING:
 
 @dataclass(frozen=True)
 class LearnerSetup:
-    """What a learner is built from: the episode folder ``out``, the pretrained weights ``state``,
-    the windows (``past_steps`` L_p, ``stride`` samples between windows; L_f = 1),
-    ``epochs`` per update, ``seed``, the learning rate ``lr``, ``weights_dtype`` on the
-    wire, the training setting ``preset`` (a key of :data:`dronefl.fl.records.PRESETS`: model
-    options, batch and optimiser; its E and lr are replaced by ``epochs`` and ``lr``), for a
-    federated learner the episode's Flower round ``driver``, and whether the episode is
-    ``resumed`` from a checkpoint (the files of the updates before it are then kept)."""
+    """What a learner is built from: the episode folder ``out``, the pretrained weights
+    ``state``, the ``setting`` (its model, training and learning sub-configs: windows L_p ->
+    1 every ``learning.stride`` samples, ``learning.epochs`` per update, the training's
+    optimiser, lr and batch), the episode's ``seed``, the scenario's field ``field_m`` =
+    (width, height) m, for a federated learner the episode's Flower round ``driver``, and
+    whether the episode is ``resumed`` from a checkpoint (the files of the updates before it
+    are then kept)."""
 
     out: Path
     state: dict[str, torch.Tensor]
-    past_steps: int
-    stride: int
-    epochs: int
+    setting: Setting
     seed: int
-    lr: float = 1e-3
-    weights_dtype: str = "float32"
-    preset: str = "ours"
+    field_m: tuple[float, float]
     driver: RoundDriver | None = None
     resumed: bool = False
 
     def fl_settings(self, method: str, run_dir: str = "", out_dir: str = "") -> FlSettings:
         """The training settings of ``method``'s updates
-        (:func:`~dronefl.fl.records.closed_loop_settings`: the preset's, with this setup's
-        windows, E, lr, seed and weight format)."""
-        return closed_loop_settings(
-            self.preset,
-            method,
-            past_steps=self.past_steps,
-            stride=self.stride,
-            epochs=self.epochs,
-            lr=self.lr,
-            seed=self.seed,
-            run_dir=run_dir,
-            out_dir=out_dir,
-            weights_dtype=self.weights_dtype,
-        )
+        (:func:`~dronefl.fl.records.online_settings`)."""
+        return online_settings(self.setting, method, self.seed, self.field_m, run_dir, out_dir)
 
 
 @dataclass(frozen=True)

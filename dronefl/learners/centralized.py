@@ -30,7 +30,8 @@ class CentralizedLearner(Learner):
         self, records: list[OnboardRecord], labels: np.ndarray, server_round: int
     ) -> ModelUpdate:
         setup = self.setup
-        spec = WindowSpec(setup.past_steps, 1, relative=True, stride=setup.stride)
+        past_steps, learning = setup.setting.model.past_steps, setup.setting.learning
+        spec = WindowSpec(past_steps, 1, relative=True, stride=learning.stride)
         windows = []
         for record, own in zip(records, labels, strict=True):
             log = record.to_log()
@@ -38,8 +39,9 @@ class CentralizedLearner(Learner):
             windows.append(build_windows(log, pseudo.for_log(log), spec))
         seed = setup.seed * 1_000_003 + server_round
         train = TrainConfig(
-            setup.epochs, setup.lr, self.settings.batch_size, seed, self.settings.optimizer
-        )
+            learning.epochs, self.settings.lr, self.settings.batch_size, seed,
+            self.settings.optimizer,
+        )  # fmt: skip
         stats = train_pooled(self.model, windows, train)
         return ModelUpdate(self.model.state_dict(), {0: stats.loss})
 

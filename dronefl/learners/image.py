@@ -43,7 +43,7 @@ class CentralizedImageLearner(Learner):
     def __init__(self, setup: LearnerSetup) -> None:
         super().__init__(setup)
         n_targets = setup.state["head.bias"].shape[0] // 2  # two coordinates per slot
-        self.config = ImageModelConfig(n_targets, setup.past_steps)
+        self.config = ImageModelConfig(n_targets, setup.setting.model.past_steps)
         self.model = FrameTransformer(self.config)
         self.model.load_state_dict(setup.state)
         self.model.eval()
@@ -89,14 +89,17 @@ class CentralizedImageLearner(Learner):
             assigned = np.broadcast_to(record.assigned, (steps, len(record.assigned)))
             windows = frame_windows(
                 np.stack(self.frames[i][:steps]), record.odometry[:steps], assigned,
-                own[:steps], record.drone_id, self.config.past_steps, setup.stride,
+                own[:steps], record.drone_id, self.config.past_steps,
+                setup.setting.learning.stride,
             )  # fmt: skip
             parts.append(windows.subset(np.flatnonzero(windows.mask.any(axis=1))))
         data = FrameWindows.concat(parts)
         if len(data) == 0:
             return None
         training = dataclasses.replace(
-            ImageTraining(), epochs=setup.epochs, seed=setup.seed * 1_000_003 + server_round
+            ImageTraining(),
+            epochs=setup.setting.learning.epochs,
+            seed=setup.seed * 1_000_003 + server_round,
         )
         stats = train_image_model(self.model, data, training)
         return ModelUpdate(self.model.state_dict(), {0: stats.loss[-1]})

@@ -57,22 +57,10 @@ from dronefl.models.windows import (
     PAPER_FIELD_M,
     PositionFrame,
 )
+from dronefl.settings import ADAIN_SITES, BOX_SIZES, STYLE_INITS
 
 Variant = Literal["dronefl", "plain", "large"]
 VARIANTS: tuple[str, ...] = ("dronefl", "plain", "large")
-#: Where AdaIN layers can sit: ``encoder`` (a residual branch after every encoder layer,
-#: statistics over time) and ``head`` (on the decoder output before the output head,
-#: statistics over channels).
-ADAIN_SITES: tuple[str, ...] = ("encoder", "head")
-#: How a style ``(mu, sigma) = A h + b`` starts: ``identity`` (A = 0, b = (0, 1): plain
-#: normalisation) or ``altitude`` (mu = 0, sigma = h / ALTITUDE_SCALE_M: outputs in proportion
-#: to the altitude, as a camera footprint is).
-STYLE_INITS: tuple[str, ...] = ("identity", "altitude")
-#: How the model reads boxes: ``image`` (fractions of the image, the paper's), ``metric``
-#: (width and height times the step's altitude / 50 m: in proportion to the ground size) or
-#: ``ground`` (the centre's offset from the image centre as well: in proportion to the
-#: target's ground offset from below the drone).
-BOX_SIZES: tuple[str, ...] = ("image", "metric", "ground")
 _METRIC_FEATURES = {"metric": BOX_SIZE_FEATURES, "ground": slice(0, BOX_DIM)}
 
 

@@ -18,12 +18,10 @@ import torch.nn.functional as F
 from torch import nn
 
 from dronefl.models.windows import BOX_DIM, FEATURE_DIM, WindowSet
+from dronefl.settings import OPTIMIZERS
 
 #: Extra loss term computed from the model being trained (e.g. FedProx's proximal term).
 Regularizer = Callable[[nn.Module], torch.Tensor]
-
-
-OPTIMIZERS: tuple[str, ...] = ("adam", "sgd")
 SGD_MOMENTUM = 0.9
 
 

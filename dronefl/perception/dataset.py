@@ -34,7 +34,7 @@ from dronefl.config import Environment, Scenario, load_scenario
 from dronefl.perception.palette import COLOUR_NAMES, MAX_TARGETS
 from dronefl.perception.projection import ProjectionNoise, visible_boxes
 from dronefl.perception.render import SceneRenderer
-from dronefl.results import load_result, save_result
+from dronefl.serialize import load_result, save_result
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 from dronefl.types import TargetState
@@ -80,7 +80,7 @@ class DatasetManifest:
 
     @classmethod
     def load(cls, dataset: Path) -> DatasetManifest:
-        """The manifest of the dataset folder ``dataset``; :class:`~dronefl.results.ResultError`
+        """The manifest of the dataset folder ``dataset``; :class:`~dronefl.serialize.ResultError`
         if it has none or a bad one."""
         return load_result(cls, dataset / "dataset.json")
 

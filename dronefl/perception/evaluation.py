@@ -52,7 +52,7 @@ from dronefl.perception.quality import (
 )
 from dronefl.perception.training import DETECTOR_SIDECAR
 from dronefl.perception.yolo import YoloDetector
-from dronefl.results import save_result
+from dronefl.serialize import save_result
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 

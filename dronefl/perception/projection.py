@@ -25,7 +25,7 @@ import numpy as np
 
 from dronefl.config import VehicleSpec
 from dronefl.perception.base import Detector
-from dronefl.results import from_json
+from dronefl.serialize import from_json
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 from dronefl.types import CameraView, Detection

@@ -3,7 +3,7 @@
 :func:`~dronefl.perception.evaluation.evaluate_detector` measures a :class:`DetectorReport`
 (``eval.json``); the shipped sidecar ``detector.json`` keeps each environment's
 :class:`EnvironmentMetrics` (the report without the per-bin rows). Both are serialised by
-:mod:`dronefl.results`, the Ultralytics metrics under their usual keys ``mAP50`` and
+:mod:`dronefl.serialize`, the Ultralytics metrics under their usual keys ``mAP50`` and
 ``mAP50-95``.
 """
 
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from dronefl.perception.projection import ProjectionNoise
-from dronefl.results import json_key, load_result, omitted_when_none, save_result
+from dronefl.serialize import json_key, load_result, omitted_when_none, save_result
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class DetectorReport:
 
     @classmethod
     def load(cls, path: Path) -> DetectorReport:
-        """Read an ``eval.json``; :class:`~dronefl.results.ResultError` names a bad file."""
+        """Read an ``eval.json``; :class:`~dronefl.serialize.ResultError` names a bad file."""
         return load_result(cls, path)
 
 

@@ -23,7 +23,7 @@ from dronefl.perception.dataset import DatasetManifest
 from dronefl.perception.nms_compat import ensure_torchvision_nms
 from dronefl.perception.palette import COLOUR_NAMES
 from dronefl.perception.quality import EnvironmentMetrics
-from dronefl.results import load_result, save_result
+from dronefl.serialize import load_result, save_result
 
 #: Shipped detector weights and their sidecar inside the package.
 DETECTOR_ASSET = "detector.onnx"
@@ -90,7 +90,7 @@ class DetectorSidecar:
 
     @classmethod
     def load(cls, path: Path) -> DetectorSidecar:
-        """Read a sidecar; :class:`~dronefl.results.ResultError` names a bad file."""
+        """Read a sidecar; :class:`~dronefl.serialize.ResultError` names a bad file."""
         return load_result(cls, path)
 
 

@@ -10,6 +10,7 @@ import numpy as np
 
 from dronefl.config import Scenario
 from dronefl.planning.base import Plan, PlanCost, Planner
+from dronefl.settings import DISTANCE_POINTS
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking.fusion import TrackForecast
 from dronefl.types import DroneState
@@ -17,8 +18,6 @@ from dronefl.validation import check_one_of
 
 #: Most drones that may see one target next step: the uncertainty lookup table has 2^k rows.
 MAX_OBSERVERS = 16
-#: Where the distance term measures a drone (:attr:`PlannerConfig.distance_at`).
-DISTANCE_POINTS: tuple[str, ...] = ("next", "rest")
 _EPS = 1e-9  # m, m/s: slack on the bound checks so that points on a bound count as inside
 
 

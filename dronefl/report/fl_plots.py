@@ -4,7 +4,6 @@ centralized baseline's image model against the box model (crop field -> orchard)
 from __future__ import annotations
 
 import io
-from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib
@@ -14,6 +13,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from dronefl.io import atomic_write_bytes  # noqa: E402
+from dronefl.results.fl import Curve  # noqa: E402
 
 #: Display names and colours, in the paper's legend order; other methods get the default cycle.
 STYLE: dict[str, tuple[str, str]] = {
@@ -27,14 +27,6 @@ STYLE: dict[str, tuple[str, str]] = {
     "dronefl-no-adain": ("DroneFL w/o AdaIN", "tab:purple"),
     "dronefl-absolute": ("DroneFL w/o relative pos.", "tab:brown"),
 }
-
-
-@dataclass(frozen=True)
-class Curve:
-    """A test MSE per round (m^2): the ``mean`` over seeds and its ``std``."""
-
-    mean: tuple[float, ...]
-    std: tuple[float, ...]
 
 
 def plot_fig5(curves: dict[str, Curve], title: str, path: Path) -> Path:

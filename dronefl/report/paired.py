@@ -26,7 +26,7 @@ import numpy as np
 from scipy import stats
 
 if TYPE_CHECKING:  # fl_offline's table uses this module
-    from dronefl.experiments.fl_offline import MethodResult
+    from dronefl.results.fl import MethodResult
 
 
 @dataclass(frozen=True)

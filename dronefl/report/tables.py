@@ -6,11 +6,11 @@ import csv
 import io
 import math
 
-from dronefl.experiments.episode import EpisodeMetrics
-from dronefl.experiments.table1 import COLUMNS, Table1Row, episode_value
+from dronefl.results.episode import EpisodeMetrics
+from dronefl.results.table1 import COLUMNS, Table1Row, episode_value
 
 #: The paper's Table I (mean, std) per (scenario, method), in Table I's column order
-#: (:data:`dronefl.experiments.table1.METRICS`).
+#: (:data:`dronefl.results.table1.METRICS`).
 PAPER_TABLE1: dict[tuple[str, str], tuple[tuple[float, float], ...]] = {
     ("case1", "centralized"): (
         (0.99, 0.40),

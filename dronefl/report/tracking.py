@@ -12,9 +12,9 @@ from matplotlib.patches import Rectangle
 from PIL import Image
 
 from dronefl.config import Scenario
-from dronefl.experiments.table1 import Table1Row
 from dronefl.io import atomic_write_bytes
 from dronefl.report.topdown import DRONE_COLOURS, TARGET_COLOURS, draw_field, save_figure
+from dronefl.results.table1 import Table1Row
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.environment import FarmEnvironment
 

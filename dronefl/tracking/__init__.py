@@ -4,15 +4,14 @@ pseudo-labels and track metrics (SPEC §6, §8)."""
 from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
 from dronefl.tracking.ekf import CHI2_2DOF_99, ExtendedKalmanFilter, UpdateDiagnostics
 from dronefl.tracking.fusion import (
-    CONSTANT_SPEED_PSD,
     RANDOM_WALK_VELOCITY_TIME_CONSTANT,
-    TUNED_CONSTANT_SPEED_PSD,
+    CloudFusion,
     Fuser,
     FusionConfig,
     PositionMeasurement,
     Track,
     TrackForecast,
-    fusion_config,
+    cloud_fusion,
 )
 from dronefl.tracking.labels import LABEL_SOURCES, Labels, LabelSource, make_labels
 from dronefl.tracking.methods import FUSION_METHODS, FusionMethod
@@ -27,12 +26,11 @@ from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 __all__ = [
     "CHI2_2DOF_99",
-    "CONSTANT_SPEED_PSD",
     "FUSION_METHODS",
     "LABEL_SOURCES",
     "RANDOM_WALK_VELOCITY_TIME_CONSTANT",
-    "TUNED_CONSTANT_SPEED_PSD",
     "AdaptiveMeasurementNoise",
+    "CloudFusion",
     "ConstantVelocity",
     "MeanRevertingVelocity",
     "CoordinatedTurn",
@@ -50,7 +48,7 @@ __all__ = [
     "TrackHistory",
     "SetDistances",
     "UpdateDiagnostics",
-    "fusion_config",
+    "cloud_fusion",
     "make_labels",
     "rts_smooth",
     "set_distances",

@@ -12,191 +12,21 @@ next predict + update.
 
 from __future__ import annotations
 
-import json
-import math
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, replace
-from typing import TYPE_CHECKING, Literal
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from dronefl.tracking.ekf import CHI2_2DOF_99, CHI2_2DOF_999, inv2_stack
+from dronefl.tracking.config import TEMPORAL_KERNEL, FusionConfig
+from dronefl.tracking.ekf import inv2_stack
 from dronefl.tracking.methods import FUSION_METHODS, MeasurementBatch
-from dronefl.tracking.models import (
-    ConstantVelocity,
-    CoordinatedTurn,
-    MeanRevertingVelocity,
-    MotionModel,
-)
+from dronefl.tracking.models import ConstantVelocity
 from dronefl.tracking.smoother import SmoothedTrack, TrackHistory, rts_smooth
 
 if TYPE_CHECKING:
     from dronefl.config import Scenario
-
-#: How two or more drones' noise is shared (:attr:`FusionConfig.noise_split`).
-NOISE_SPLITS: tuple[str, ...] = ("adaptive", "reported")
-#: The target motion models by name (:attr:`FusionConfig.motion`).
-MOTIONS: tuple[str, ...] = ("constant_velocity", "mean_reverting", "coordinated_turn")
-#: :attr:`FusionConfig.coverage_noise` as measured: entry ``n - 1`` is the MSE of a fixed
-#: model's sent prediction made when its drone sent that target on ``n`` of the last 10 steps
-#: (its L_p = 10 window held ``n`` detections), over that of one made from a full window
-#: (orchard, Case 2, tuning seeds 10-13, 80,000 sends; made non-increasing by isotonic
-#: regression). Case 3's tuning seeds 10-11 give the same shape (n = 9: 4.6, n <= 8: 8-11).
-COVERAGE_NOISE_PROFILE: tuple[float, ...] = (
-    9.55, 9.55, 9.55, 9.55, 9.52, 7.75, 5.22, 3.47, 2.21, 1.0,
-)  # fmt: skip
-#: :attr:`FusionConfig.temporal_kernel` as fitted
-#: (:func:`~dronefl.experiments.replay.fit_temporal_kernel`, 5 taps) on two crop-field
-#: episodes of Case 2 with the fixed models (``dronefl track --env crop_field --scenario case2
-#: --method fixed --seed 20`` and ``21``; 16,000 steps, the truth known there): the drones'
-#: sent predictions lag a random-walk target, and the kernel extrapolates (+1.48 on the newest,
-#: -0.53 on the one before). 5 taps, not 10: a 10-tap kernel also weighs lag 5, the
-#: simulator's 1 s velocity redraw, which real vehicles do not have.
-TEMPORAL_KERNEL: tuple[float, ...] = (1.4806, -0.5331, -0.0056, -0.1841, 0.2422)
-
-
-def _finite_numbers(name: str, values: object, positive: bool) -> tuple[float, ...]:
-    """``values`` (a tuple, or a list when read back from JSON) as a tuple of floats;
-    ``ValueError`` naming ``name`` unless it is a non-empty sequence of finite (and, with
-    ``positive``, positive) numbers."""
-    numbers = tuple(values)
-    if not numbers or not all(
-        isinstance(v, int | float) and math.isfinite(v) and (v > 0 or not positive) for v in numbers
-    ):
-        kind = "positive finite factors" if positive else "finite weights"
-        raise ValueError(f"{name}: must be {kind}, got {values!r}")
-    return tuple(float(v) for v in numbers)
-
-
-@dataclass(frozen=True)
-class FusionConfig:
-    """Settings of the cloud fusion (SPEC §6).
-
-    ``method``: the fusion method, a key of :data:`~dronefl.tracking.methods.FUSION_METHODS`
-    (``robust`` by default; ``paper`` is the paper's sequential adaptive EKF).
-    ``motion``: one of :data:`MOTIONS`: ``constant_velocity`` (x, y, vx, vy),
-    ``mean_reverting`` (the same state, the velocity forgetting itself over
-    ``velocity_time_constant`` s) or ``coordinated_turn`` (x, y, v, psi, omega).
-    ``acceleration_psd``: white-acceleration PSD q, m^2/s^3 (0.5 m/s vehicles turning at the
-    headlands need ~0.01-0.1; the random-walk targets of Case 2 change velocity by ~1 m/s each
-    second and need ~1). ``turn_rate_psd``: turn-acceleration PSD of the coordinated-turn model,
-    rad^2/s^3. ``initial_noise_std``: std of every pair's starting ``R = sigma^2 I``, m.
-    ``initial_speed_std``: velocity std of a newborn track, m/s. ``adaptive``: adapt ``R`` per
-    pair (off: ``R`` stays at its initial value). ``adaptation_rate``: EMA rate ``beta`` per
-    accepted update. ``noise_floor_std``: ``R``'s smallest allowed std, m. ``gate``: squared
-    Mahalanobis threshold (chi-square 2 dof 99 % by default), ``None`` disables gating.
-    ``reset_after``: re-initialise a track from the measurements when every measurement of it was
-    gated out on this many consecutive updates (a lost track cannot recover through the gate),
-    ``None`` never.
-
-    ``robust`` only (:class:`~dronefl.tracking.methods.RobustAdaptive`): ``huber_threshold``
-    ``k^2``, the squared Mahalanobis distance beyond which a measurement's weight falls as
-    ``k / d``; ``consensus_gate``: the squared distance (chi-square 2 dof 99.9 % by default) at
-    which a measurement is rejected against the other drones' mean when two or more drones see
-    the target (``None``: against the prior, with ``gate``, as the paper); ``fading``: inflate
-    the prior of a track that the drones' consensus finds outside ``gate`` (a lagging track);
-    ``noise_estimate``: how ``R`` adapts when two or more drones see the target, ``consensus``
-    (leave-one-out residuals), ``grubbs`` (the prior as the third corner) or ``innovation`` (the
-    paper's form, always used for a lone drone); ``error_autocorrelation`` ``phi``: lag-1
-    autocorrelation of the prediction errors, ``R`` inflated by ``(1 + phi) / (1 - phi)`` in
-    the update (an AR(1) error's effective-sample-size factor); ``noise_split``: how the
-    adapted ``R`` of two or more drones on one target is shared between them, ``adaptive``
-    (as it adapts) or ``reported`` (their total kept, shared in proportion to the noise the
-    drones report with their predictions, :mod:`dronefl.tracking.reports`; targets whose
-    drones did not all report keep ``adaptive``); ``coverage_noise`` ``(s_1, ..., s_L)``: the
-    factor on ``R`` of a measurement whose pair sent one in ``n`` of the last ``L`` updates
-    (``s_n``; :data:`COVERAGE_NOISE_PROFILE`), as a drone predicting from a window with few
-    detections errs more, ``None`` (default) the same ``R`` for every measurement;
-    ``temporal_kernel`` ``(w_0, ..., w_{L-1})``, summing to 1: the position the Fuser *outputs*
-    for a target (:attr:`Fuser.tracks`, :meth:`Fuser.forecast`) is ``sum_l w_l m_{t-l}``, ``m``
-    the ``R``-weighted mean of the fused predictions of the drones that sent the target at
-    each of the last ``L`` updates, where there are any (:data:`TEMPORAL_KERNEL`, fitted for
-    one update per step of 0.2 s, as the closed loop and the deployed cloud make them); the
-    filter's state, history and labels are unchanged; ``None`` (default): the filter's
-    position.
-    """
-
-    method: str = "robust"
-    motion: Literal["constant_velocity", "mean_reverting", "coordinated_turn"] = "constant_velocity"
-    acceleration_psd: float = 0.1
-    turn_rate_psd: float = 0.01
-    velocity_time_constant: float = 1.0
-    initial_noise_std: float = 1.0
-    initial_speed_std: float = 1.0
-    adaptive: bool = True
-    adaptation_rate: float = 0.02
-    noise_floor_std: float = 0.05
-    gate: float | None = CHI2_2DOF_99
-    reset_after: int | None = 5
-    huber_threshold: float = CHI2_2DOF_99
-    error_autocorrelation: float = 0.0
-    consensus_gate: float | None = CHI2_2DOF_999
-    fading: bool = True
-    noise_estimate: str = "consensus"
-    noise_split: Literal["adaptive", "reported"] = "adaptive"
-    coverage_noise: tuple[float, ...] | None = None
-    temporal_kernel: tuple[float, ...] | None = None
-
-    def __post_init__(self) -> None:
-        if self.method not in FUSION_METHODS:
-            raise ValueError(
-                f"method: unknown fusion method {self.method!r} ({', '.join(FUSION_METHODS)})"
-            )
-        if self.motion not in MOTIONS:
-            raise ValueError(f"motion: unknown model {self.motion!r} ({', '.join(MOTIONS)})")
-        for name in (
-            "acceleration_psd",
-            "turn_rate_psd",
-            "velocity_time_constant",
-            "initial_noise_std",
-            "initial_speed_std",
-            "noise_floor_std",
-            "huber_threshold",
-        ):
-            value = getattr(self, name)
-            if not (isinstance(value, int | float) and math.isfinite(value) and value > 0):
-                raise ValueError(f"{name}: must be a positive finite number, got {value!r}")
-        if not 0 < self.adaptation_rate <= 1:
-            raise ValueError(f"adaptation_rate: must be in (0, 1], got {self.adaptation_rate}")
-        if not 0 <= self.error_autocorrelation < 1:
-            raise ValueError(
-                f"error_autocorrelation: must be in [0, 1), got {self.error_autocorrelation}"
-            )
-        if self.noise_estimate not in ("consensus", "innovation", "grubbs"):
-            raise ValueError(
-                f"noise_estimate: {self.noise_estimate!r} is not one of consensus, innovation, "
-                "grubbs"
-            )
-        if self.noise_split not in NOISE_SPLITS:
-            raise ValueError(
-                f"noise_split: {self.noise_split!r} is not one of {', '.join(NOISE_SPLITS)}"
-            )
-        if self.noise_split == "reported" and self.method != "robust":
-            raise ValueError("noise_split: 'reported' needs the robust fusion method")
-        if self.coverage_noise is not None:
-            scales = _finite_numbers("coverage_noise", self.coverage_noise, positive=True)
-            if self.method != "robust":
-                raise ValueError("coverage_noise: needs the robust fusion method")
-            object.__setattr__(self, "coverage_noise", scales)
-        if self.temporal_kernel is not None:
-            weights = _finite_numbers("temporal_kernel", self.temporal_kernel, positive=False)
-            if abs(sum(weights) - 1.0) > 1e-9:
-                raise ValueError(f"temporal_kernel: the weights must sum to 1, got {sum(weights)}")
-            object.__setattr__(self, "temporal_kernel", weights)
-        for name in ("gate", "consensus_gate"):
-            value = getattr(self, name)
-            if value is not None and not value > 0:
-                raise ValueError(f"{name}: must be > 0 (squared Mahalanobis distance), got {value}")
-        if self.reset_after is not None and self.reset_after < 1:
-            raise ValueError(f"reset_after: must be >= 1 update or None, got {self.reset_after}")
-
-    def motion_model(self) -> MotionModel:
-        """The configured :class:`MotionModel`."""
-        if self.motion == "coordinated_turn":
-            return CoordinatedTurn(self.acceleration_psd, self.turn_rate_psd)
-        if self.motion == "mean_reverting":
-            return MeanRevertingVelocity(self.acceleration_psd, self.velocity_time_constant)
-        return ConstantVelocity(self.acceleration_psd)
+    from dronefl.settings import FusionSetting
 
 
 @dataclass(frozen=True)
@@ -318,10 +148,8 @@ class Fuser:
     ``target_ids`` / ``drone_ids``: the scenario's ids; ``config``: :class:`FusionConfig`;
     ``initial_positions``: optional ``{target_id: (2,)}`` m to start tracks at ``t0`` (with
     position std ``initial_noise_std``); other targets get a track at their first measurement
-    (the mean of that step's positions). With :attr:`FusionConfig.coverage_noise` it counts,
-    per pair, the updates among the last ``L`` that carried its measurement; with
-    :attr:`FusionConfig.temporal_kernel` it keeps each pair's fused positions of the last
-    ``L`` updates. Counters:
+    (the mean of that step's positions). With :attr:`FusionConfig.temporal_kernel` it keeps
+    each pair's fused positions of the last ``L`` updates. Counters:
     :attr:`rejections` (gated-out measurements), :attr:`measurements` (all fused or gated
     ones), :attr:`resets` (tracks re-initialised after ``reset_after`` all-rejected updates),
     :attr:`dropped` (non-finite measurements ignored).
@@ -363,10 +191,6 @@ class Fuser:
         self._last: dict[int, tuple[int, int]] = {}
         self._history: list[list[tuple]] = [[] for _ in self.target_ids]
         self._pending: dict[int, tuple] = {}  # this update's (t, prior mean, prior cov, F)
-        coverage = self.config.coverage_noise
-        self._coverage = None if coverage is None else np.asarray(coverage)
-        # which of the last L updates carried each pair's measurement, newest first, (L, D, T)
-        self._sent = np.zeros((len(coverage or ()), len(self.drone_ids), n_targets), dtype=bool)
         kernel = self.config.temporal_kernel
         self._kernel = None if kernel is None else np.asarray(kernel)
         # the fused positions of the last L updates per pair, newest first, (L, D, T, 2) m
@@ -392,10 +216,7 @@ class Fuser:
         return state
 
     def __setstate__(self, state: dict) -> None:
-        """Unpickle, back to rows (also a Fuser pickled with rows, before 2026-12-06)."""
-        state.setdefault("_coverage", None)  # pickled before coverage_noise (2026-12-06)
-        state.setdefault("_kernel", None)  # pickled before temporal_kernel (2026-12-06)
-        state.setdefault("_output", {})
+        """Unpickle, back to rows."""
         self.__dict__.update(state)
         self._history = [
             rows if isinstance(rows, list) else _history_rows(rows) for rows in self._history
@@ -439,17 +260,13 @@ class Fuser:
         if not t >= self.t:
             raise ValueError(f"update time {t} s is before the last update at {self.t} s")
         batch = self._group(measurements)
-        if self._coverage is not None:
-            batch = self._scaled(batch)
         self._predict(t - self.t)
         self.t = float(t)
         self._last = {}
         tracked = self._alive[batch.targets]  # (G,)
         for g in (~tracked).nonzero()[0]:
             rows = batch.rows(g)
-            self._birth(
-                int(batch.targets[g]), batch.drone[rows], batch.position[rows], batch.scale[rows]
-            )
+            self._birth(int(batch.targets[g]), batch.drone[rows], batch.position[rows])
         used = ~tracked[batch.group]  # the rows fused: those of a birth, and those accepted
         if tracked.any():
             used[tracked[batch.group]] = self._fuse(
@@ -518,21 +335,11 @@ class Fuser:
             index, positions, reported = index[finite], positions[finite], reported[finite]
         return MeasurementBatch.of(index[:, 1], index[:, 0], positions, reported)
 
-    def _scaled(self, batch: MeasurementBatch) -> MeasurementBatch:
-        """``batch`` with each row's factor ``s_n`` of :attr:`FusionConfig.coverage_noise`,
-        ``n`` the updates among the last ``L`` (this one included) with its pair's
-        measurement."""
-        self._sent[1:] = self._sent[:-1].copy()
-        self._sent[0] = False
-        self._sent[0, batch.drone, batch.target] = True
-        n = self._sent[:, batch.drone, batch.target].sum(axis=0)
-        return replace(batch, scale=self._coverage[n - 1])
-
-    def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray, scale: np.ndarray) -> None:
+    def _birth(self, j: int, drones: np.ndarray, positions: np.ndarray) -> None:
         """Start (or restart) target ``j``'s track at the mean of ``positions``; its
-        covariance is that of the mean of independent measurements, ``(sum_i s_i
-        R_ij^-1)^-1`` (``scale`` ``s_i``: :attr:`MeasurementBatch.scale`)."""
-        noise = self.method.noise()[drones, j] * scale[:, None, None]
+        covariance is that of the mean of independent measurements, ``(sum_i
+        R_ij^-1)^-1``."""
+        noise = self.method.noise()[drones, j]
         info = np.linalg.inv(noise).sum(axis=0)
         self._start(j, positions.mean(axis=0), np.linalg.inv(info), len(drones))
         self._last[self.target_ids[j]] = (len(drones), 0)
@@ -581,7 +388,7 @@ class Fuser:
             if reset_after is not None and self._misses[k] >= reset_after:
                 self.resets += 1
                 rows = batch.rows(g)
-                self._birth(k, batch.drone[rows], batch.position[rows], batch.scale[rows])
+                self._birth(k, batch.drone[rows], batch.position[rows])
                 self._last[target_id] = (0, n_rejected)
             elif self.record:  # result's rows are fresh arrays, kept as they are
                 row = (result.mean[g], result.covariance[g], n_accepted)
@@ -654,12 +461,6 @@ def _history_rows(history: TrackHistory | None) -> list[tuple]:
     ]  # fmt: skip
 
 
-def planner_filter_config(config: FusionConfig, track_psd: float | None) -> FusionConfig:
-    """The settings of the planner's filter: the fusion's ``config`` with q = ``track_psd``
-    m^2/s^3 (``config`` itself when that is ``None``: one filter for both)."""
-    return config if track_psd is None else replace(config, acceleration_psd=track_psd)
-
-
 def update_filters(
     fuser: Fuser, label_fuser: Fuser | None, t: float, measurements: Sequence[PositionMeasurement]
 ) -> tuple[dict[int, Track], dict[int, Track]]:
@@ -717,98 +518,57 @@ def _reported(measurements: Sequence[PositionMeasurement]) -> np.ndarray:
 
 
 #: The velocity time constant (s) of the ``robust`` fusion's mean-reverting motion model for
-#: random-walk targets, chosen by replay on the Case 2 tuning episodes (seeds 10 and 11) from
-#: 0.1, 0.25, 0.5, 1, 2 and 5 s: the best smoothed labels, and fused tracks within 10 % of
-#: the best.
+#: random-walk targets: the best smoothed labels among 0.1-5 s on tuning episodes, fused tracks
+#: within 10 % of the best (docs/fusion.md).
 RANDOM_WALK_VELOCITY_TIME_CONSTANT = 0.25
+#: The process noise q (m^2/s^3) for random-walk targets, whose velocity jumps by N(0, 1) m/s
+#: per axis every second.
+RANDOM_WALK_PSD = 1.0
 
 
-#: The process noise q (m^2/s^3) of the fusion's constant-velocity model for constant-speed
-#: targets (Cases 1 and 3) unless told otherwise (:func:`fusion_config`).
-CONSTANT_SPEED_PSD = 0.1
+@dataclass(frozen=True)
+class CloudFusion:
+    """The cloud's filters for one scenario: ``fusion``, the settings of the filter whose
+    smoothed history gives the labels and whose ``Tr P`` the planner weighs, and ``planner``,
+    those of a second filter fed the same measurements whose tracks the planner flies on
+    (``None``: the planner flies on the first)."""
 
-#: The q (m^2/s^3) for constant-speed targets chosen by replay on the Cases 1 and 3 tuning
-#: episodes (seeds 10 and 11, fixed models, the recommended setting) from 1e-5 to 0.1 in
-#: steps of ~3x: the largest q whose fused track is within 10 % of the best in both cases
-#: (Case 1 fails below 3e-4: 0.035 m² at 1e-4, 72 m² at 1e-5). A 0.5 m/s vehicle accelerates
-#: only in its headland U-turns (v²/r = 0.017 m/s² for Case 3's 15 m radius); in sharper
-#: turns this q lags by decimetres (docs/fusion.md, "The fusion's process noise for constant-speed
-#: targets").
-TUNED_CONSTANT_SPEED_PSD = 0.001
+    fusion: FusionConfig
+    planner: FusionConfig | None = None
 
-
-def constant_speed_q(value: float | None) -> float:
-    """The constant-speed process noise q (m^2/s^3) that ``value`` asks for (``None``:
-    :data:`CONSTANT_SPEED_PSD`); ``ValueError`` naming ``--constant-speed-psd`` unless it is a
-    positive number."""
-    q = CONSTANT_SPEED_PSD if value is None else value
-    if not (0 < q < math.inf):
-        raise ValueError(f"--constant-speed-psd: must be a positive number of m^2/s^3, got {q}")
-    return float(q)
+    @property
+    def tracks(self) -> FusionConfig:
+        """The settings of the filter whose tracks the planner flies on and the log records."""
+        return self.fusion if self.planner is None else self.planner
 
 
-def fusion_config(
-    scenario: Scenario, method: str = "robust", constant_speed_psd: float | None = None
-) -> FusionConfig:
-    """EKF settings for the scenario and fusion ``method``; constant-speed targets get the
-    constant-velocity model with q = ``constant_speed_psd`` m^2/s^3 (``None``:
-    :data:`CONSTANT_SPEED_PSD`). Random-walk targets change
-    velocity by about 1 m/s every second: they need a larger process noise (q = 1), and the
-    ``robust`` fusion tracks them with a velocity that forgets itself over
-    :data:`RANDOM_WALK_VELOCITY_TIME_CONSTANT` s
-    (:class:`~dronefl.tracking.MeanRevertingVelocity`), so that a track no drone sees stops
-    instead of carrying the velocity it had at the edge of the view on. The ``paper`` fusion
-    keeps the constant-velocity model."""
-    q = constant_speed_q(constant_speed_psd)
-    if not has_random_walk(scenario):
-        return FusionConfig(method=method, acceleration_psd=q)
-    if method != "robust":
-        return FusionConfig(method=method, acceleration_psd=1.0)
-    return FusionConfig(
-        method=method,
-        acceleration_psd=1.0,
-        motion="mean_reverting",
-        velocity_time_constant=RANDOM_WALK_VELOCITY_TIME_CONSTANT,
-    )
+def cloud_fusion(setting: FusionSetting, reported: bool, scenario: Scenario) -> CloudFusion:
+    """The one place a setting becomes the cloud's filters (``track``, the deployed cloud and
+    ``replay`` all call it), for ``scenario`` with ``reported`` noise from the drones.
 
-
-def fusion_record(config: FusionConfig) -> str:
-    """``config`` as an episode's ``metrics.json`` records it (``fusion_config``, read back by
-    ``dronefl replay --as-flown``): JSON of every field, keys sorted, without ``noise_split``
-    when it is ``adaptive`` and ``coverage_noise`` / ``temporal_kernel`` when ``None`` (as every
-    episode flown before those fields existed records them)."""
-    fields = asdict(config)
-    if fields["noise_split"] == "adaptive":
-        del fields["noise_split"]
-    for name in ("coverage_noise", "temporal_kernel"):  # as every episode flown before them
-        if fields[name] is None:
-            del fields[name]
-    return json.dumps(fields, sort_keys=True)
-
-
-def has_random_walk(scenario: Scenario) -> bool:
-    """Whether any of ``scenario``'s targets moves as a random walk (they set the fusion's
-    motion model for the whole scenario, :func:`fusion_config`)."""
-    return any(t.motion == "random_walk" for t in scenario.targets)
-
-
-def check_track_psd(option: str, value: float | None) -> None:
-    """``ValueError`` naming ``option`` unless ``value`` is ``None`` or a positive number."""
-    if value is not None and not (0 < value < math.inf):
-        raise ValueError(f"{option}: must be a positive number of m^2/s^3, got {value}")
-
-
-def planner_track_psd(
-    scenario: Scenario, track_psd: float | None, random_walk_track_psd: float | None
-) -> float | None:
-    """The q (m^2/s^3) of the planner's own filter: ``track_psd`` if given, else
-    ``random_walk_track_psd`` for a scenario with random-walk targets, else ``None`` (the
-    planner flies on the fusion's filter); ``ValueError`` naming the option unless each given
-    value is a positive number."""
-    check_track_psd("--track-psd", track_psd)
-    check_track_psd("--random-walk-track-psd", random_walk_track_psd)
-    if track_psd is not None:
-        return float(track_psd)
-    if random_walk_track_psd is not None and has_random_walk(scenario):
-        return float(random_walk_track_psd)
-    return None
+    Constant-speed targets get the constant-velocity model with q =
+    ``setting.constant_speed_psd``. Random-walk targets change velocity by about 1 m/s every
+    second: they get q = :data:`RANDOM_WALK_PSD`, and the ``robust`` fusion tracks them with a
+    velocity that forgets itself over :data:`RANDOM_WALK_VELOCITY_TIME_CONSTANT` s (a track no
+    drone sees stops instead of carrying the velocity it had at the edge of the view on);
+    there, the planner flies on a second filter of q = ``setting.random_walk_planner_psd``
+    (when set), and with ``setting.temporal_kernel`` the tracks it flies on are
+    :data:`TEMPORAL_KERNEL`'s (fitted on random-walk targets). The ``paper`` fusion keeps the
+    constant-velocity model. One scenario with a random-walk target sets the model for all."""
+    random_walk = any(t.motion == "random_walk" for t in scenario.targets)
+    noise_split = "reported" if reported else "adaptive"
+    kernel = TEMPORAL_KERNEL if setting.temporal_kernel and random_walk else None
+    base = {"method": setting.method, "noise_split": noise_split, "temporal_kernel": kernel}
+    if not random_walk:
+        return CloudFusion(FusionConfig(**base, acceleration_psd=setting.constant_speed_psd))
+    if setting.method == "robust":
+        fusion = FusionConfig(
+            **base,
+            acceleration_psd=RANDOM_WALK_PSD,
+            motion="mean_reverting",
+            velocity_time_constant=RANDOM_WALK_VELOCITY_TIME_CONSTANT,
+        )
+    else:
+        fusion = FusionConfig(**base, acceleration_psd=RANDOM_WALK_PSD)
+    q = setting.random_walk_planner_psd
+    return CloudFusion(fusion, None if q is None else replace(fusion, acceleration_psd=q))

@@ -18,11 +18,11 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from dronefl.settings import LABEL_DRONES
 from dronefl.tracking.fusion import Fuser
 
 #: Default largest label std (m, per axis, rms over x and y) kept for training.
@@ -127,28 +127,18 @@ class GroundTruthLabels(LabelSource):
         return Labels(self.name, t, np.array(fuser.target_ids), position, np.zeros(shape[:2]))
 
 
-#: Which drones learn from a label (``--label-drones``): ``all`` (the paper: every drone that
-#: observed the target); ``others``: drone i only from labels of steps at which its own and
-#: another drone's prediction of the target reached the cloud (a label of its own predictions
-#: alone teaches it nothing new); ``lower``: at which its own and that of a drone flying lower
-#: did (a downward camera's ground error grows with altitude, so the label holds a better view
-#: than its own).
-LABEL_DRONES = ("all", "others", "lower")
-
-
 def label_drones(
     predicted: np.ndarray,
-    altitudes: Sequence[float],
     rule: str,
     assigned: np.ndarray | None = None,
 ) -> np.ndarray:
     """Which drone learns from which label under ``rule`` (a name in :data:`LABEL_DRONES`).
 
     ``predicted`` ``(T, M, N)`` bool: drone ``i``'s prediction of target ``j`` for time step
-    ``t`` reached the cloud; ``altitudes`` ``(M,)`` m. With ``assigned`` ``(M, N)`` bool (drone
+    ``t`` reached the cloud. With ``assigned`` ``(M, N)`` bool (drone
     ``i`` watches target ``j``), drone ``i``'s own condition is that it watches the target,
     not that its prediction reached the cloud: drones that withhold the predictions of targets
-    they do not detect (``--detected-only``) still learn those steps from the others' views (a
+    they do not detect (``drone.detected_only``) still learn those steps from the others' views (a
     drone trains only on windows holding a detection, so a label at a step it had none is not
     used). Returns ``(M, T, N)`` bool: drone ``i`` trains on the label of target ``j`` at step
     ``t``.
@@ -156,10 +146,7 @@ def label_drones(
     if rule not in LABEL_DRONES:
         raise ValueError(f"label drones: unknown rule {rule!r} ({', '.join(LABEL_DRONES)})")
     predicted = np.asarray(predicted, dtype=bool)
-    altitudes = np.asarray(altitudes, dtype=float)
     n_steps, n_drones, n_targets = predicted.shape
-    if altitudes.shape != (n_drones,):
-        raise ValueError(f"altitudes: expected shape ({n_drones},), got {altitudes.shape}")
     if rule == "all":
         return np.ones((n_drones, n_steps, n_targets), dtype=bool)
     if assigned is not None and np.shape(assigned) != (n_drones, n_targets):
@@ -170,8 +157,6 @@ def label_drones(
     out = np.zeros((n_drones, n_steps, n_targets), dtype=bool)
     for i in range(n_drones):
         sources = np.arange(n_drones) != i
-        if rule == "lower":
-            sources &= altitudes < altitudes[i]
         own = predicted[:, i] if watches is None else watches[i]
         out[i] = own & predicted[:, sources].any(axis=1)
     return out
@@ -180,7 +165,6 @@ def label_drones(
 def drone_labels(
     position: np.ndarray,
     prediction: np.ndarray,
-    altitudes: Sequence[float],
     rule: str,
     assigned: np.ndarray | None = None,
 ) -> np.ndarray:
@@ -202,91 +186,16 @@ def drone_labels(
         )
     predicted = np.zeros((steps, *prediction.shape[1:3]), dtype=bool)
     predicted[1:] = np.isfinite(prediction[: steps - 1]).all(axis=-1)
-    mask = label_drones(predicted, altitudes, rule, assigned)
+    mask = label_drones(predicted, rule, assigned)
     return np.where(mask[..., None], position[None], np.nan)
 
 
-def estimate_pull(prediction: np.ndarray, drone_position: np.ndarray) -> float:
-    """How far the drones' predictions are pulled toward their own drone, from their
-    disagreement alone (no truth): the least-squares ``a`` of
-
-        z_i - z_l = a (d_i - d_l) + noise,
-
-    over every step ``k`` and pair of drones ``i != l`` that both predicted target ``j``, which
-    holds when each prediction is ``z_i = x - a (x - d_i)`` plus noise (``x`` the target,
-    ``d_i`` its drone). ``prediction`` ``(K, M, N, 2)`` m (NaN where none), the prediction made
-    at step ``k``; ``drone_position`` ``(>= K, M, 2)`` m, where each drone was at step ``k``
-    (NaN where unknown: those steps are left out).
-    Returns ``a`` clipped to ``[0, 0.5]`` (0 without a pair): the pull measured here is toward
-    the drone, and 0.5 bounds the de-shrinking gain ``1 / (1 - a)`` at 2.
-    """
-    prediction = np.asarray(prediction, dtype=float)
-    steps, n_drones = prediction.shape[:2]
-    drone_position = np.asarray(drone_position, dtype=float)[:steps]
-    if drone_position.shape != (steps, n_drones, 2):
-        raise ValueError(
-            f"drone_position: expected ({steps}, {n_drones}, 2), got {drone_position.shape}"
-        )
-    cross = square = 0.0
-    for i in range(n_drones):
-        for other in range(i + 1, n_drones):
-            seen = np.isfinite(drone_position[:, i, 0]) & np.isfinite(drone_position[:, other, 0])
-            both = np.isfinite(prediction[:, i, :, 0]) & np.isfinite(prediction[:, other, :, 0])
-            both &= seen[:, None]
-            k, _ = np.nonzero(both)
-            difference = (prediction[:, i] - prediction[:, other])[both]  # (S, 2)
-            baseline = (drone_position[:, i] - drone_position[:, other])[k]  # (S, 2)
-            cross += float(np.sum(difference * baseline))
-            square += float(np.sum(baseline * baseline))
-    return float(np.clip(cross / square, 0.0, 0.5)) if square > 0 else 0.0
-
-
-def deshrink_labels(labels: np.ndarray, drone_position: np.ndarray, pull: float) -> np.ndarray:
-    """Each drone's labels pushed away from the drone by the pull ``a`` = ``pull``
-    (:func:`estimate_pull`): ``l' = d_i + (l - d_i) / (1 - a)``, which returns ``x`` for a label
-    ``l = x - a (x - d_i)`` pulled toward drone ``i`` as its own predictions are; so training
-    does not teach the pull back. ``labels`` ``(M, T, N, 2)`` m (from :func:`drone_labels`; the
-    label of step ``t`` goes with the prediction made at ``t - 1``); ``drone_position``
-    ``(>= T, M, 2)`` m, drone ``i`` at step ``t - 1`` is the ``d_i`` of label ``t`` (step 0's
-    own for ``t = 0``). ``pull`` in ``[0, 1)``."""
-    if not 0.0 <= pull < 1.0:
-        raise ValueError(f"pull: must be in [0, 1), got {pull}")
-    labels = np.asarray(labels, dtype=float)
-    steps = labels.shape[1]
-    where = np.asarray(drone_position, dtype=float)[np.maximum(np.arange(steps) - 1, 0)]
-    centre = where.transpose(1, 0, 2)[:, :, None, :]  # (M, T, 1, 2)
-    return centre + (labels - centre) / (1.0 - pull)
-
-
-#: Label sources by name (``--labels``).
+#: Label sources by name (``learning.labels``).
 LABEL_SOURCES: dict[str, type[LabelSource]] = {
     "smoothed": SmoothedLabels,
     "filtered": FilteredLabels,
     "ground_truth": GroundTruthLabels,
 }
-
-
-def training_labels(
-    position: np.ndarray,
-    prediction: np.ndarray,
-    drone_position: np.ndarray,
-    altitudes: Sequence[float],
-    rule: str,
-    deshrink: bool,
-    assigned: np.ndarray | None = None,
-) -> tuple[np.ndarray, float]:
-    """What each drone trains on at a round, as ``dronefl track`` and the deployed cloud give
-    it: :func:`drone_labels` of ``position`` ``(T, N, 2)`` m under ``rule`` (and
-    ``assigned``, with ``--detected-only``), de-shrunk by the
-    pull (:func:`deshrink_labels`) when ``deshrink``; and that pull, measured either way
-    (:func:`estimate_pull` over the ``T`` steps so far). ``prediction`` ``(>= T, M, N, 2)`` m,
-    ``drone_position`` ``(>= T, M, 2)`` m. Returns ``(labels (M, T, N, 2) m, pull)``."""
-    steps = np.asarray(position).shape[0]
-    own = drone_labels(position, prediction, altitudes, rule, assigned)
-    pull = estimate_pull(np.asarray(prediction)[:steps], drone_position)
-    if deshrink:
-        own = deshrink_labels(own, drone_position, pull)
-    return own, pull
 
 
 def make_labels(

@@ -26,7 +26,7 @@ from dronefl.tracking.adaptive import AdaptiveMeasurementNoise
 from dronefl.tracking.ekf import position_update
 
 if TYPE_CHECKING:
-    from dronefl.tracking.fusion import FusionConfig
+    from dronefl.tracking.config import FusionConfig
 
 
 @dataclass(frozen=True)
@@ -37,8 +37,7 @@ class MeasurementBatch:
     once); ``position`` ``(K, 2)`` m. ``targets`` ``(G,)``: the distinct targets, ascending;
     ``start`` / ``count`` ``(G,)``: the first row and the number of rows of each; ``group``
     ``(K,)``: each row's place in ``targets``. ``reported`` ``(K, 3)``: each drone's reported
-    noise as ``(xx, xy, yy)`` m² (NaN where it sent none). ``scale`` ``(K,)``: the factor on
-    each row's ``R`` (:attr:`~dronefl.tracking.fusion.FusionConfig.coverage_noise`; 1 without).
+    noise as ``(xx, xy, yy)`` m² (NaN where it sent none).
     """
 
     target: np.ndarray
@@ -49,7 +48,6 @@ class MeasurementBatch:
     count: np.ndarray
     group: np.ndarray
     reported: np.ndarray
-    scale: np.ndarray
 
     @classmethod
     def of(
@@ -58,24 +56,20 @@ class MeasurementBatch:
         drone: np.ndarray,
         position: np.ndarray,
         reported: np.ndarray | None = None,
-        scale: np.ndarray | None = None,
     ) -> MeasurementBatch:
-        """The rows ``target`` / ``drone`` ``(K,)``, ``position`` ``(K, 2)`` m, ``reported``
-        ``(K, 3)`` m² (default: none) and ``scale`` ``(K,)`` (default: 1), sorted and
-        grouped."""
+        """The rows ``target`` / ``drone`` ``(K,)``, ``position`` ``(K, 2)`` m and ``reported``
+        ``(K, 3)`` m² (default: none), sorted and grouped."""
         if reported is None:
             reported = np.full((len(target), 3), np.nan)
-        if scale is None:
-            scale = np.ones(len(target))
         order = np.lexsort((drone, target))
         target, drone = target[order], drone[order]
-        position, reported, scale = position[order], reported[order], scale[order]
+        position, reported = position[order], reported[order]
         per_target = np.bincount(target)  # rows of every target index
         targets = per_target.nonzero()[0]
         count = per_target[targets]
         group = (per_target > 0).cumsum()[target] - 1
         start = count.cumsum() - count
-        return cls(target, drone, position, targets, start, count, group, reported, scale)
+        return cls(target, drone, position, targets, start, count, group, reported)
 
     def rows(self, group: int) -> slice:
         """The rows of ``targets[group]``."""
@@ -90,7 +84,6 @@ class MeasurementBatch:
             self.drone[rows],
             self.position[rows],
             self.reported[rows],
-            self.scale[rows],
         )
 
 
@@ -252,14 +245,6 @@ class RobustAdaptive(FusionMethod):
     adaptation leaves it where the errors' slow parts push it. With ``noise_split =
     "reported"`` every step first shares the adapted total of a target's drones in proportion
     to the noises they report (:meth:`_split_by_reports`).
-
-    *Sparse windows.* A row with ``scale`` ``s_i`` (the batch's, from
-    :attr:`~dronefl.tracking.fusion.FusionConfig.coverage_noise`) is fused with
-    ``s_i \tilde R_i``, and its sample for the adaptation is divided by ``s_i``: ``R_i`` stays
-    the noise of a prediction made from a full window. A residual between drones adapts only
-    when every one of them has ``s = 1``: it measures ``s_i R_i + s_k R_k``, and dividing out
-    one drone's ``s`` would pass the error of the other's estimate on multiplied by the ratio
-    of the two (the split then drifts apart).
     """
 
     def __init__(self, config: FusionConfig, n_drones: int, n_targets: int) -> None:
@@ -286,7 +271,7 @@ class RobustAdaptive(FusionMethod):
             self._split_by_reports(batch)
         group = batch.group
         z = batch.position.T  # (2, K)
-        r = self._r[:, batch.drone, batch.target] * (self._inflation * batch.scale)  # s_i R~_i
+        r = self._r[:, batch.drone, batch.target] * self._inflation  # R~_i
         info = _inv_sym(r)  # R~_i^-1
         y = z - mean[group, :2].T  # innovations against the common prior, (2, K)
         a = covariance[:, _XX_XY_YY[0], _XX_XY_YY[1]].T  # A = H P^- H^T, (3, G)
@@ -345,13 +330,8 @@ class RobustAdaptive(FusionMethod):
         estimate = self.config.noise_estimate
         groups = batch.group[rows]
         innovation = ~consensus[groups] if estimate != "innovation" else np.ones(rows.size, bool)
-        if not (batch.scale == 1.0).all():  # a residual between drones: full windows only
-            full = np.logical_and.reduceat(batch.scale == 1.0, batch.start)  # (G,)
-            keep = innovation | full[groups]
-            rows, groups, innovation = rows[keep], groups[keep], innovation[keep]
         c = np.where(innovation, self._c, self._c_consensus)
-        unscale = inflation * batch.scale[rows]  # R_i is kept without the inflation and s_i
-        w = weight[rows] * (1.0 / (c * unscale))
+        w = weight[rows] * (1.0 / (c * inflation))  # R_i is kept without the inflation
         u = v = y[:, rows]  # innovation: y y^T - A
         base = a[:, groups]
         if estimate == "consensus":  # r r^T - R_-i
@@ -360,7 +340,7 @@ class RobustAdaptive(FusionMethod):
         elif estimate == "grubbs":  # the prior as the third corner: sym(y r^T)
             v = np.where(innovation, v, residual[:, rows])
             base = np.where(innovation, base, 0.0)
-        sample = w * _outer(u, v) - base / unscale
+        sample = w * _outer(u, v) - base / inflation
         drone, target = batch.drone[rows], batch.target[rows]
         blended = (1.0 - beta) * self._r[:, drone, target] + beta * sample
         self._r[:, drone, target] = _floor_sym(blended, self._floor)

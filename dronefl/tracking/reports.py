@@ -24,15 +24,6 @@ predictions are off by 0.1-1.3 m on average, constant over the episode). With
 model's residuals over the last :data:`REBASE_STEPS` steps of its record, as if it had flown
 it (:meth:`NoiseReporter.rebase`).
 
-With ``net`` the drone reports ``R_pred`` alone: it also keeps an EMA of ``d d^T / 6`` for
-``d = g_{k+1} - 2 g_k + g_{k-1}``, the second difference of three consecutive detections,
-which for white projection errors and a target path straight over 0.4 s is ``R_proj``
-(``Var d = 6 R_proj``; a random-walk target's velocity jumps add ~0.003 m² in Case 2), and
-reports ``E[e e^T]`` less it, eigenvalues floored at :data:`REPORT_FLOOR`. Without it the
-high drones' reports carry their larger projection error (Case 3, 60 m: 0.07-0.08 m² per
-axis against 0.01 at 20 m, when its prediction error is ~0.05): the split then under-weights
-them.
-
 The cloud cannot get this split from the predictions alone: with two drones on a target the
 residual between them measures only ``R_1 + R_2`` (the adaptive estimate gives both the same
 share). The reports give the ratio (on Case 3's tuning episodes they rank the high drone above
@@ -59,9 +50,6 @@ REPORT_RATE = 0.02
 #: Steps of its record over which a drone re-estimates its bias after a model update: the
 #: EMA's weight beyond them is below e^-5.
 REBASE_STEPS = int(np.ceil(5 / REPORT_RATE))
-
-#: Smallest eigenvalue of a net report (m², 5 cm std: the fusion's default ``R`` floor).
-REPORT_FLOOR = 0.05**2
 
 
 def box_ground_positions(
@@ -115,9 +103,8 @@ class ForecastResidual:
     predictions (a step without any: skip it). The residual of the previous step's prediction
     against this step's detection updates ``S_j <- (1 - rate) S_j + rate e e^T`` (the first
     sample is taken as it is) and the bias ``b_j <- b_j + rate e`` (from zero); a target
-    without both keeps its estimates. Three consecutive detections update the projection
-    noise ``V_j`` alike from ``d d^T / 6`` (module doc). :meth:`noise` is NaN for a target
-    that has had no residual yet; :meth:`bias` is zero then.
+    without both keeps its estimates. :meth:`noise` is NaN for a target that has had no
+    residual yet; :meth:`bias` is zero then.
     """
 
     def __init__(self, n_targets: int, rate: float = REPORT_RATE) -> None:
@@ -127,17 +114,6 @@ class ForecastResidual:
         self._s = np.full((n_targets, 2, 2), np.nan)
         self._b = np.zeros((n_targets, 2))
         self._last = np.full((n_targets, 2), np.nan)
-        self._v = np.full((n_targets, 2, 2), np.nan)
-        self._seen = np.full((2, n_targets, 2), np.nan)  # the last two detections
-
-    def __setstate__(self, state: dict) -> None:
-        """Unpickle, also an estimate saved before the bias (then zero: it had not been
-        applied) or the projection noise (then unknown) were kept."""
-        n = len(state["_s"])
-        state.setdefault("_b", np.zeros((n, 2)))
-        state.setdefault("_v", np.full((n, 2, 2), np.nan))
-        state.setdefault("_seen", np.full((2, n, 2), np.nan))
-        self.__dict__.update(state)
 
     def observe(self, detected: np.ndarray) -> None:
         """Update from this step's detected ground positions ``(n, 2)`` m."""
@@ -147,33 +123,14 @@ class ForecastResidual:
         self._s[ok] = _ema(self._s[ok], e[ok, :, None] * e[ok, None, :], self.rate)
         self._b[ok] += self.rate * e[ok]
         self._last[:] = np.nan  # a prediction is compared with the next step's detection only
-        d = detected - 2 * self._seen[0] + self._seen[1]
-        ok = np.isfinite(d).all(axis=1)
-        self._v[ok] = _ema(self._v[ok], d[ok, :, None] * d[ok, None, :] / 6.0, self.rate)
-        self._seen = np.stack([detected, self._seen[0]])
 
     def predicted(self, positions: np.ndarray) -> None:
         """Remember this step's predictions ``(n, 2)`` m (NaN: none) for the next residual."""
         self._last = np.array(positions, dtype=float)
 
-    def noise(self, net: bool = False) -> np.ndarray:
-        """The reported noise of every target, ``(n, 2, 2)`` m² (a copy): ``E[e e^T]``, or
-        with ``net`` that less the projection noise, floored (:data:`REPORT_FLOOR`; where the
-        projection noise is not known yet, ``E[e e^T]``)."""
-        if not net:
-            return self._s.copy()
-        known = np.isfinite(self._v).all(axis=(1, 2)) & np.isfinite(self._s).all(axis=(1, 2))
-        out = self._s.copy()
-        if known.any():
-            values, vectors = np.linalg.eigh(self._s[known] - self._v[known])
-            values = np.maximum(values, REPORT_FLOOR)
-            out[known] = (vectors * values[:, None, :]) @ vectors.transpose(0, 2, 1)
-        return out
-
-    def projection_noise(self) -> np.ndarray:
-        """The estimated noise of the back-projected detections, ``(n, 2, 2)`` m² (a copy;
-        NaN until three consecutive detections)."""
-        return self._v.copy()
+    def noise(self) -> np.ndarray:
+        """The reported noise of every target, ``E[e e^T]`` ``(n, 2, 2)`` m² (a copy)."""
+        return self._s.copy()
 
     def rebase_bias(self, raw: np.ndarray, detected: np.ndarray) -> None:
         """Re-estimate the bias from zero as the EMA of ``raw[k] - detected[k + 1]``: ``raw``
@@ -194,25 +151,17 @@ class ForecastResidual:
 
 class NoiseReporter:
     """What a drone runs to report its noise and correct its bias, fed from its onboard
-    record: the closed loop's drones and the deployed drone (``dronefl drone --report-noise
-    --correct-bias``) alike.
+    record (:class:`~dronefl.roles.DroneNode`, in the closed loop and in a deployed drone).
 
     Each step: :meth:`observe` once the step's detections are in the record, then
     :meth:`correct` the predictions (with ``correct_bias``), then :meth:`report` (or, without
     reports, :meth:`remember`) with the predictions it sends (the positions as they travel).
-    With ``net`` its reports are net of its projection noise (:meth:`ForecastResidual.noise`).
     """
 
-    def __init__(self, scenario: Scenario, rate: float = REPORT_RATE, net: bool = False) -> None:
+    def __init__(self, scenario: Scenario, rate: float = REPORT_RATE) -> None:
         self.camera, self.ground_z = ground_plane(scenario)
         self.column = {int(t): j for j, t in enumerate(scenario.target_ids)}
         self.residual = ForecastResidual(len(self.column), rate)
-        self.net = net
-
-    def __setstate__(self, state: dict) -> None:
-        """Unpickle, also a reporter saved before net reports existed (gross reports)."""
-        state.setdefault("net", False)
-        self.__dict__.update(state)
 
     def observe(self, record: OnboardRecord) -> None:
         """Compare the last predictions with the detections ``record`` has just stored."""
@@ -261,7 +210,7 @@ class NoiseReporter:
         ``target_ids``: the targets that have an estimate and their ``(n', 2, 2)`` m²
         (residuals of the earlier predictions only); keeps the predictions for the next
         residual (:meth:`remember`)."""
-        noise = self.residual.noise(self.net)
+        noise = self.residual.noise()
         self.remember(target_ids, positions)
         known = tuple(t for t in target_ids if np.isfinite(noise[self.column[t]]).all())
         return known, noise[[self.column[t] for t in known]].reshape(-1, 2, 2)
@@ -281,10 +230,9 @@ def forecast_residual_reports(
     detected: Sequence[np.ndarray],
     rate: float = REPORT_RATE,
     correct_bias: bool = False,
-    net: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The predictions every drone would have sent in an episode and the noise it would have
-    reported with each (net of its projection noise with ``net``).
+    reported with each.
 
     ``predictions`` ``(K, M, N, 2)``: the raw prediction made at step ``k`` for ``k + 1``
     (NaN: none); ``detected[i]`` ``(>= K, N, 2)``: drone ``i``'s back-projected detections per
@@ -300,7 +248,7 @@ def forecast_residual_reports(
         residual = ForecastResidual(n_targets, rate)
         for k in range(n_steps):
             residual.observe(detected[i][k])
-            reports[k, i] = residual.noise(net)
+            reports[k, i] = residual.noise()
             if correct_bias:
                 sent[k, i] -= residual.bias()
             residual.predicted(sent[k, i])

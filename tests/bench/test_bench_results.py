@@ -22,7 +22,7 @@ from dronefl.bench.results import (
     UplinkFigure,
 )
 from dronefl.bench.timing import latency, with_reference
-from dronefl.results import load_result, save_result
+from dronefl.serialize import load_result, save_result
 
 
 def _benchmarks() -> Benchmarks:

@@ -13,7 +13,7 @@ from dronefl.bench.command import bench
 from dronefl.bench.results import Benchmarks, BenchResults
 from dronefl.bench.run import BenchError, run_bench
 from dronefl.bench.timing import latency
-from dronefl.results import load_result
+from dronefl.serialize import load_result
 
 
 @pytest.fixture

@@ -3,7 +3,6 @@ an unknown key with "Invalid run configuration"); the staged copy of the app tha
 builds its FAB from holds every file the app needs."""
 
 import tomllib
-from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -14,13 +13,14 @@ from dronefl.deploy import CloudError
 from dronefl.deploy.cloud import CloudSettings
 from dronefl.deploy.flower import stage_app
 from dronefl.fl.records import FlSettings
+from dronefl.settings import Setting
 
 
 def test_every_fl_setting_is_declared_in_the_app_config():
     pyproject = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
     declared = set(pyproject["tool"]["flwr"]["app"]["config"])
     sent = set(FlSettings(run_dir="a", out_dir="b").to_run_config())
-    sent |= set(CloudSettings(scenario="case1", model="m", out="o").to_run_config())
+    sent |= set(_cloud().to_run_config())
     assert sent - declared == set()
 
 
@@ -42,18 +42,21 @@ def test_the_staged_app_is_the_package_and_its_scenarios(tmp_path):
     ).read_bytes()
 
 
-def test_cloud_settings_survive_the_run_config():
-    settings = CloudSettings(
-        scenario="case2", model="m", out="o", round_timeout=12.5, deshrink_labels=True,
-        constant_speed_psd=1e-3,
-    )  # fmt: skip
+def _cloud(**changed) -> CloudSettings:
+    values = {
+        "scenario": "case2", "model": "m", "out": "o", "setting": Setting.load().to_toml(),
+        "method": "dronefl", "duration": 60.0, "deadline_ms": 150.0, "listen": "127.0.0.1:1",
+        "connect": "127.0.0.1:2", "tls_dir": "", "start_timeout": 30.0,
+    }  # fmt: skip
+    return CloudSettings(**{**values, **changed})
+
+
+def test_cloud_settings_survive_the_run_config_with_the_setting_whole():
+    settings = _cloud(round_timeout=12.5)
     assert CloudSettings.from_run_config(settings.to_run_config()) == settings
-    # A second filter's q travels as a float, its absence as 0 (TOML has no null).
-    for track_psd, sent in ((None, 0.0), (10.0, 10.0)):
-        second = replace(settings, track_psd=track_psd)
-        assert second.to_run_config()["deploy-track-psd"] == sent
-        assert CloudSettings.from_run_config(second.to_run_config()) == second
-    # A flag given as text is refused by name ("false" would be true to bool()).
-    as_text = {**settings.to_run_config(), "deploy-deshrink-labels": "false"}
-    with pytest.raises(CloudError, match="'deploy-deshrink-labels' must be a bool"):
-        CloudSettings.from_run_config(as_text)
+    paper = _cloud(setting=Setting.load("paper").to_toml())
+    assert CloudSettings.from_run_config(paper.to_run_config()).resolved == Setting.load("paper")
+    with pytest.raises(CloudError, match="run config: setting deployed"):
+        _cloud(setting="[fusion]\nmethod = 'kalman'\n")
+    with pytest.raises(ValueError, match="--method: 'centralized' is not one of"):
+        _cloud(method="centralized")

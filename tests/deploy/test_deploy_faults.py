@@ -8,7 +8,6 @@ import shutil
 import signal
 import subprocess
 import time
-from dataclasses import replace
 
 import numpy as np
 import psutil
@@ -22,10 +21,13 @@ from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import load_model, save_model
 from dronefl.deploy.processes import port_open, wait_for
 from dronefl.deploy.results import DeploymentMetrics
-from dronefl.experiments.replay import flown_config, load_episode, replay
+from dronefl.experiments.pretrain import PretrainSpec
+from dronefl.experiments.replay import load_episode, replay_setting
+from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.logs import PseudoLabels
-from dronefl.models.model import build_model, predictor_config
+from dronefl.models.model import build_model
+from dronefl.settings import Setting
 from dronefl.tracking.fusion import TEMPORAL_KERNEL
 
 
@@ -45,6 +47,17 @@ def _wait_for_line(path, text: str, launcher: subprocess.Popen, seconds: float) 
         time.sleep(0.02)
 
 
+#: The deployment's setting: the recommended one with a round every 25 s.
+SETTING = ["learning.period=25"]
+
+
+def _equal_steps(a: np.ndarray, b: np.ndarray) -> int:
+    """Leading steps (first axis) of ``a`` and ``b`` equal to the bit, NaN equal to NaN."""
+    same = (a == b) | (np.isnan(a) & np.isnan(b))
+    same = same.reshape(len(a), -1).all(axis=1)
+    return len(a) if same.all() else int(np.argmin(same))
+
+
 @pytest.mark.timeout(600)
 @pytest.mark.slow
 def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
@@ -52,11 +65,8 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
 ):
     out = tmp_path / "deploy"
     command = cli(
-        "deploy", "up", "--setting", "ours", "--scenario", "case2", "--env", "crop_field",
-        "--seed", "3",
-        "--duration", "60", "--fl-period", "25", "--config", "metric-scaffold", "--epochs", "1",
-        "--label-drones", "lower", "--deshrink-labels", "--random-walk-track-psd", "30",
-        "--noise-split", "reported", "--temporal-kernel",
+        "deploy", "up", "--scenario", "case2", "--env", "crop_field", "--seed", "3",
+        "--duration", "60", *(a for o in SETTING for a in ("--set", o)),
         "--base-port", str(free_port_block()),
         "--out", str(out),
         "--pretrained", str(quick_pretrained_case2), "--restart-drones",
@@ -84,60 +94,69 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert survivors(run_env[MARK]) == []
     metrics = DeploymentMetrics.load(out / "metrics.json")
     assert metrics.engine == "deployment"
+    setting = Setting.load("recommended", SETTING)
+    assert Setting.load(str(out / "setting.toml")) == setting  # every process read it
+
+    # The same drone and cloud classes as `dronefl track`: before the kill the deployment
+    # flies the same steps as the closed loop in one process, to the bit.
+    track = TrackConfig(
+        load_scenario("case2"), tmp_path / "track", setting, method="dronefl", seed=3,
+        duration=10.0, environment="crop_field", pretrained=quick_pretrained_case2,
+        progress=False, animate=False,
+    )  # fmt: skip
+    run_episode(track)
+    with (
+        np.load(out / "episode.npz") as deployed,
+        np.load(tmp_path / "track" / "episode.npz") as one,
+    ):
+        received = np.where(one["sent"][..., None], one["prediction"], np.nan)
+        assert _equal_steps(deployed["prediction"][:40], received[:40]) == 40
+        for key in ("track_position", "trace", "cost"):
+            assert _equal_steps(deployed[key][:40], one[key][:40]) == 40, key
+
     # The planner flew on a second, q = 30 filter with the temporal kernel, the labels' filter
     # the fusion's own, with the drones' noise reports: the replay of what the cloud received
-    # (predictions and reports), with the settings the deployment records, gives back its
+    # (predictions and reports), with the setting the deployment records, gives back its
     # tracks; one filter, the adaptive split or no kernel does not.
-    assert metrics.config["track_psd"] == 30.0
     episode = load_episode(out)
-    flown_fusion = flown_config(episode)
-    assert flown_fusion.noise_split == "reported" and episode.received_reports is not None
-    assert flown_fusion.temporal_kernel == TEMPORAL_KERNEL
+    assert episode.setting == setting and episode.received_reports is not None
     assert np.isfinite(episode.received_reports).any()
-    flown = replay(episode, flown_fusion, track_psd=episode.flown_track_psd)
-    assert flown.track_psd == 30.0
+    flown = replay_setting(episode, episode.setting)
+    assert flown.fusion.planner.acceleration_psd == 30.0
+    assert flown.fusion.fusion.temporal_kernel == TEMPORAL_KERNEL
     # (Where some drone sent the target at each of the last 5 steps the output is the
     # kernel's whatever the filter's q: one filter then moves the tracks less.)
     others = (
-        (replay(episode, flown_fusion), 1e-6),
-        (replay(episode, replace(flown_fusion, noise_split="adaptive"), track_psd=30.0), 1e-3),
-        (replay(episode, replace(flown_fusion, temporal_kernel=None), track_psd=30.0), 1e-3),
+        (setting.override(["fusion.random_walk_planner_psd=none"]), 1e-6),
+        (setting.override(["drone.noise_reports=false"]), 1e-3),
+        (setting.override(["fusion.temporal_kernel=false"]), 1e-3),
     )
     for other, apart in others:
-        for target, changed in zip(flown.targets, other.targets, strict=True):
+        changed = replay_setting(episode, other)
+        for target, moved in zip(flown.targets, changed.targets, strict=True):
             assert target.fused_mse == pytest.approx(target.recorded_mse, rel=1e-9, abs=1e-12)
-            assert changed.fused_mse != pytest.approx(target.recorded_mse, rel=apart)
+            assert moved.fused_mse != pytest.approx(target.recorded_mse, rel=apart)
     assert metrics.processes >= 7  # world, cloud, SuperLink, 3 drones, 3 SuperNodes, ...
 
-    # Rounds at steps 125 and 250 (t = 25 s, 50 s): the episode went on. Drone 3 flies lowest
-    # (25 m): with --label-drones lower none of its labels holds a lower view, so it sits
-    # both rounds out (Flower: no training examples) and never loads a round's model.
+    # Rounds at steps 125 and 250 (t = 25 s, 50 s): the episode went on. Drone 2 was dead in
+    # round 1; restarted, it rejoined round 2.
     rounds = {r.round: r for r in metrics.fl_rounds}
     assert sorted(rounds) == [1, 2] and rounds[1].t == 25.0
-    assert rounds[1].participants == (1,) and rounds[1].missing == (2, 3), rounds[1]
-    assert rounds[2].participants == (1, 2) and rounds[2].missing == (3,), rounds[2]
-    assert all("drone 3: no training examples" in r.rejected for r in rounds.values())
-    # --deshrink-labels reached the ServerApp's run config: each round measured the pull
-    # (two drones predicting a target disagree along their baseline; clipped to [0, 0.5]).
-    assert all(r.pull is not None and 0.0 <= r.pull <= 0.5 for r in rounds.values()), rounds
-    server_log = (out / "cloud" / "logs" / "flwr-run.log").read_text()
-    assert "round 1: labels de-shrunk by the pull" in server_log
-    assert metrics.missed_rounds == {1: (), 2: (1,), 3: (1, 2)}
+    assert rounds[1].participants == (1, 3) and rounds[1].missing == (2,), rounds[1]
+    assert rounds[2].participants == (1, 2, 3) and rounds[2].missing == (), rounds[2]
+    assert metrics.missed_rounds == {1: (), 2: (1,), 3: ()}
     drones = out / "drones"
-    assert np.isnan(PseudoLabels.load(drones / "drone-3" / "tracks.npz").position).all()
-    assert np.isfinite(PseudoLabels.load(drones / "drone-1" / "tracks.npz").position).any()
-    assert (drones / "drone-1" / "global.npz").is_file()
-    assert not (drones / "drone-3" / "global.npz").exists()
-    # --config metric-scaffold (make demo's setting) reached every process: the drones fly
-    # and install the preset's model (it reads box sizes in proportion to the ground), and
-    # SCAFFOLD's control variates went round: each drone that trained keeps its c_i on its
-    # disk, the cloud keeps c (the mean of the c_i) in its checkpoint.
+    for d in (1, 2, 3):
+        assert np.isfinite(PseudoLabels.load(drones / f"drone-{d}" / "tracks.npz").position).any()
+    # The recommended setting's model reached every process: the drones fly and install the
+    # model that reads box sizes in proportion to the ground, and SCAFFOLD's control variates
+    # went round: each drone that trained keeps its c_i on its disk, the cloud keeps c (the
+    # mean of the c_i) in its checkpoint.
     installed = load_model(drones / "drone-1" / "global.npz")
     assert installed.server_round == 2 and installed.model.box_size == "metric"
     assert load_model(out / "model" / "pretrained.npz").model == installed.model
     with np.load(drones / "drone-1" / "control" / "drone_1_round_2.npz") as control:
         assert any(np.abs(control[k]).max() > 0 for k in control.files)
-    assert not (drones / "drone-3" / "control").exists()
     cloud_fl = out / "cloud" / "fl" / "global"
     checkpoint = load_checkpoint(cloud_fl / "checkpoint.npz", cloud_fl / "history.json", "dronefl")
     assert checkpoint.server_round == 2 and checkpoint.control is not None
@@ -156,8 +175,8 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     assert metrics.silent_steps[1] <= 25 and metrics.silent_steps[3] <= 25, metrics.silent_steps
     assert metrics.missing_controls[1] == 0 and metrics.missing_controls[3] == 0
     # While drone 2 was gone the cloud kept every track (never dropped once all existed).
-    with np.load(out / "episode.npz") as episode:
-        tracked = np.isfinite(episode["track_position"]).all(axis=(1, 2))
+    with np.load(out / "episode.npz") as saved:
+        tracked = np.isfinite(saved["track_position"]).all(axis=(1, 2))
     assert tracked[gap[0]] and tracked[np.argmax(tracked) :].all()
     assert metrics.tracking.prediction_coverage > 0.5
 
@@ -167,10 +186,10 @@ def test_deploy_up_rides_out_a_killed_drone_and_leaves_nothing(
     restarted = (out / "logs" / "drone-2-restart1.log").read_text()
     assert "model of round 2 loaded" in restarted
     rate = metrics.communication.kb_per_s
-    # 300 control messages of 14 B in 60 s; drone 1 gets the weights four times (two rounds,
-    # two new models), drone 3 twice (the rounds' messages only).
+    # 300 control messages of 14 B in 60 s; drones 1 and 3 get the weights four times (two
+    # rounds, two new models), drone 2 twice (round 2 and its model).
     assert rate(1, "down", "control") == pytest.approx(300 * 14 / 1000 / 60)
-    assert rate(1, "down", "weights") > rate(3, "down", "weights") > 0
+    assert rate(1, "down", "weights") == rate(3, "down", "weights") > rate(2, "down", "weights") > 0
     assert rate(1, "up", "weights") > 0
     names = {p.name for p in (out / "logs").glob("*.log")}
     assert {"cloud.log", "world.log", "drone-1.log", "drone-3.log"} <= names
@@ -192,7 +211,7 @@ def test_supernode_with_an_unregistered_key_is_refused(tmp_path, run_env):
         )
     )
     model = tmp_path / "model.npz"
-    config = predictor_config("dronefl", 10, 1)
+    config = PretrainSpec(load_scenario("case1"), Setting.load()).model
     save_model(model, build_model(config).state_dict(), 0, config)
     base = free_port_block()
     cloud = subprocess.Popen(

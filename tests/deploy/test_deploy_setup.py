@@ -8,10 +8,13 @@ import pytest
 import torch
 from deploy_helpers import MARK, cli, free_port_block, survivors
 
+from dronefl.config import load_scenario
 from dronefl.deploy.certs import make_certificates
 from dronefl.deploy.clientapp import save_model
 from dronefl.deploy.drone import _refusal
+from dronefl.experiments.pretrain import PretrainSpec
 from dronefl.models.model import build_model, predictor_config
+from dronefl.settings import Setting
 
 
 def _run(command, env, timeout=120):
@@ -22,8 +25,9 @@ def _run(command, env, timeout=120):
 
 @pytest.fixture
 def model_file(tmp_path):
+    """The recommended setting's model, untrained."""
     path = tmp_path / "model.npz"
-    config = predictor_config("dronefl", 10, 1)
+    config = PretrainSpec(load_scenario("case1"), Setting.load()).model
     save_model(path, build_model(config).state_dict(), 0, config)
     return path
 
@@ -37,17 +41,19 @@ def test_model_file_of_another_model_is_named(tmp_path, run_env):
     assert lines == [f"error: --model: {path} does not hold the DroneFL predictor's weights"]
 
 
-def test_cloud_refuses_a_model_file_of_another_config(model_file, tmp_path, run_env):
-    # model_file holds `ours` (box sizes as the image gives them); metric-scaffold reads them
-    # in proportion to the ground: the same weight shapes, another model. Refused before the
-    # SuperLink starts.
+def test_cloud_refuses_a_model_file_of_another_setting(model_file, tmp_path, run_env):
+    # model_file holds the recommended setting's model (box sizes in proportion to the
+    # ground); the paper's reads them as the image gives them: the same weight shapes,
+    # another model. Refused before the SuperLink starts.
     out = tmp_path / "cloud"
     code, lines = _run(
-        cli("cloud", "--model", str(model_file), "--config", "metric-scaffold", "--out", str(out)),
+        cli("cloud", "--model", str(model_file), "--setting", "paper", "--out", str(out)),
         run_env,
     )
     assert code == 2
-    assert len(lines) == 1 and "--model" in lines[0] and "--config metric-scaffold" in lines[0]
+    assert (
+        len(lines) == 1 and "--model" in lines[0] and "another model than the setting" in lines[0]
+    )
     assert not (out / "logs").exists()
     assert survivors(run_env[MARK]) == []
 

@@ -1,5 +1,5 @@
-"""The deployed drone's noise reports, bias correction and withheld predictions (``dronefl
-drone --report-noise --correct-bias --detected-only``), without processes: its uplink is a
+"""The deployed drone's noise reports, bias correction and withheld predictions (the setting's
+``[drone]``), without processes: its uplink is a
 prediction message followed by a noise report; the reports and the corrected predictions are
 those the replay rebuilds from the drone's own record (the closed loop's computation); a new
 model gets its own bias; only the targets it detects are sent."""
@@ -16,6 +16,7 @@ from dronefl.experiments.pretrain import PretrainSpec
 from dronefl.models.model import build_model
 from dronefl.models.predictor import TrajectoryPredictor
 from dronefl.perception import make_detector
+from dronefl.settings import Setting
 from dronefl.sim.camera import PinholeCamera
 from dronefl.sim.world import World
 from dronefl.tracking.reports import box_ground_positions, forecast_residual_reports
@@ -24,16 +25,24 @@ from dronefl.wire import NoiseReportMessage, PredictionMessage, split_uplink
 STEPS = 60
 
 
+def _setting(noise_reports=False, correct_bias=False, detected_only=False) -> Setting:
+    drone = {"noise_reports": noise_reports, "correct_bias": correct_bias}
+    return Setting.load().with_values(drone={**drone, "detected_only": detected_only})
+
+
 def _fly(tmp_path, **options):
     """One case 2 drone (id 2: two targets, each shared with another drone) fed STEPS of the
-    world's senses; returns the drone, its sent predictions ``(STEPS, 1, N, 2)`` and its
-    noise reports by step."""
+    world's senses, sending what ``options`` (:func:`_setting`) say; returns the drone, its
+    sent predictions ``(STEPS, 1, N, 2)`` and its noise reports by step."""
     scenario = load_scenario("case2")
     drone_id = 2
+    setting = _setting(**options)
     predictor = TrajectoryPredictor(
-        build_model(PretrainSpec(scenario, "dronefl").model, seed=0), runtime="torch"
+        build_model(PretrainSpec(scenario, setting).model, seed=0), runtime="torch"
     )
-    settings = DroneSettings("case2", drone_id, tmp_path / "model.npz", tmp_path, **options)
+    settings = DroneSettings(
+        "case2", drone_id, tmp_path / "model.npz", tmp_path, setting, (), "127.0.0.1:1", 1
+    )
     info = {"dt": scenario.dt, "scenario": "case2", "environment": "orchard", "seed": 0,
             "steps": STEPS}  # fmt: skip
     drone = DroneProcess(settings, info, predictor)
@@ -49,9 +58,10 @@ def _fly(tmp_path, **options):
         message = PredictionMessage.decode(uplink)
         for target_id, position in zip(message.target_ids, message.positions[:, 0], strict=True):
             predictions[k, 0, scenario.target_ids.index(target_id)] = position
-        if k < settings.past_steps - 1 or not settings.report_noise:  # no window or no reports
+        past_steps = setting.model.past_steps
+        if k < past_steps - 1 or not setting.drone.noise_reports:  # no window or no reports
             assert report == b""
-            assert k >= settings.past_steps - 1 or message.target_ids == ()
+            assert k >= past_steps - 1 or message.target_ids == ()
         else:
             reports.append((k, NoiseReportMessage.decode(report)))
         world.step(np.zeros((len(scenario.drones), 2)))
@@ -69,10 +79,10 @@ def _ground(drone):
 
 @pytest.fixture(scope="module")
 def flown(tmp_path_factory):
-    """The same drone flown plain and with ``--report-noise --correct-bias``."""
+    """The same drone flown plain and with noise reports and the bias correction."""
     root = tmp_path_factory.mktemp("drones")
     raw = _fly(root / "raw")
-    return raw, _fly(root / "corrected", report_noise=True, correct_bias=True)
+    return raw, _fly(root / "corrected", noise_reports=True, correct_bias=True)
 
 
 def test_a_reporting_drone_sends_the_reports_its_record_gives(flown):
@@ -90,7 +100,7 @@ def test_a_reporting_drone_sends_the_reports_its_record_gives(flown):
 
 
 def test_a_correcting_drone_sends_what_the_replay_rebuilds(flown):
-    # The same drone without and with --correct-bias: the corrected predictions are the raw
+    # The same drone without and with the correction: the corrected predictions are the raw
     # ones less the running mean of the residuals of what was sent.
     (_, raw, no_reports), (drone, sent, _) = flown
     assert no_reports == []
@@ -111,22 +121,23 @@ def test_a_new_model_gets_its_own_bias_from_the_drones_record(flown):
     # same residuals, but for the centimetres on the radio); with another model it is that
     # model's: the EMA of its own residuals over the record.
     _, (drone, _, _) = flown
-    reporter, record = copy.deepcopy(drone.reporter), drone.record
+    reporter, record = copy.deepcopy(drone.node.reporter), drone.record
+    past_steps = drone.node.past_steps
     kept = reporter.residual.bias()
-    reporter.rebase(record, drone.predictor, drone.settings.past_steps)
+    reporter.rebase(record, drone.predictor, past_steps)
     np.testing.assert_allclose(reporter.residual.bias(), kept, atol=0.01)
     other = TrajectoryPredictor(
-        build_model(PretrainSpec(load_scenario("case2"), "dronefl").model, seed=1),
+        build_model(PretrainSpec(load_scenario("case2"), Setting.load()).model, seed=1),
         runtime="torch",
     )
     raw = np.full((STEPS, 1, len(record.target_ids), 2), np.nan)
-    for k in range(drone.settings.past_steps - 1, STEPS):
-        window = slice(k + 1 - drone.settings.past_steps, k + 1)
+    for k in range(past_steps - 1, STEPS):
+        window = slice(k + 1 - past_steps, k + 1)
         raw[k, 0, record.assigned] = other.predict(
             record.odometry[window], record.boxes[window][:, record.assigned],
             record.detected[window][:, record.assigned],
         )[:, 0]  # fmt: skip
-    reporter.rebase(record, other, drone.settings.past_steps)
+    reporter.rebase(record, other, past_steps)
     ema = np.zeros((len(record.target_ids), 2))
     ground = _ground(drone)
     for k in range(STEPS - 1):
@@ -143,57 +154,11 @@ def test_split_uplink_without_a_report_and_with_a_short_payload():
     assert split_uplink(b"\x02") == (b"\x02", b"")
 
 
-def test_the_deployment_refuses_an_unknown_noise_split(tmp_path):
-    from dronefl.deploy.cloud import CloudSettings
-    from dronefl.deploy.launcher import DeployConfig
-
-    with pytest.raises(ValueError, match="--noise-split"):
-        DeployConfig(scenario="case2", out=tmp_path, noise_split="oracle")
-    with pytest.raises(ValueError, match="--noise-split"):
-        CloudSettings(scenario="case2", model="m.npz", out=str(tmp_path), noise_split="oracle")
-
-
-def test_deploy_up_starts_every_drone_with_its_reports_and_correction(tmp_path):
-    from dronefl.deploy.launcher import DeployConfig, _commands
-
-    scenario = load_scenario("case2")
-    every = {"--report-noise", "--correct-bias", "--detected-only", "--net-reports"}
-    for split, on, flags in (("adaptive", False, set()), ("reported", True, every)):
-        config = DeployConfig(
-            scenario="case2", out=tmp_path, noise_split=split, correct_bias=on,
-            detected_only=on, net_reports=on,
-        )  # fmt: skip
-        commands = _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)
-        for d in scenario.drone_ids:
-            assert flags == every & set(commands[f"drone-{d}"])
-        assert on == ("--detected-only" in commands["cloud"])  # its labels follow
-    config = DeployConfig(scenario="case2", out=tmp_path, planner_distance="rest")
-    cloud = _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
-    assert cloud[cloud.index("--planner-distance") + 1] == "rest"  # the cloud plans
-    with pytest.raises(ValueError, match="--planner-distance"):
-        DeployConfig(scenario="case2", out=tmp_path, planner_distance="later")
-    assert "--constant-speed-psd" not in cloud  # not given: the cloud's default
-    assert "--coverage-noise" not in cloud
-    config = DeployConfig(scenario="case2", out=tmp_path, coverage_noise=True)
-    assert (
-        "--coverage-noise"
-        in _commands(config, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
-    )  # the cloud fuses
-    config = DeployConfig(scenario="case3", out=tmp_path, constant_speed_psd=1e-3)
-    cloud = _commands(config, load_scenario("case3"), tmp_path / "m.npz", None, tmp_path)["cloud"]
-    assert float(cloud[cloud.index("--constant-speed-psd") + 1]) == 1e-3  # the cloud fuses
-    with pytest.raises(ValueError, match="--constant-speed-psd"):
-        DeployConfig(scenario="case3", out=tmp_path, constant_speed_psd=-1.0)
-
-
 def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):
-    # `dronefl drone --detected-only --net-reports`: the predictions of the targets it
-    # detects at that step, corrected by the residuals of what it sent (the replay's
-    # computation), no others; its reports net of its projection noise.
+    # drone.detected_only: the predictions of the targets it detects at that step, corrected
+    # by the residuals of what it sent (the replay's computation), no others.
     (_, raw, _), _ = flown
-    drone, sent, reports = _fly(
-        tmp_path, report_noise=True, correct_bias=True, detected_only=True, net_reports=True
-    )
+    drone, sent, reports = _fly(tmp_path, noise_reports=True, correct_bias=True, detected_only=True)
     detected = drone.record.detected[:STEPS]  # (STEPS, N)
     made = np.isfinite(raw[:, 0]).all(axis=-1)
     assert np.array_equal(np.isfinite(sent[:, 0]).all(axis=-1), made & detected)
@@ -202,14 +167,10 @@ def test_a_drone_that_sends_only_what_it_detects(flown, tmp_path):
     expected, _ = forecast_residual_reports(withheld, [_ground(drone)], correct_bias=True)
     np.testing.assert_allclose(sent, expected, atol=0.011)  # centimetres on the radio
     assert all(set(r.target_ids) <= set(np.nonzero(detected[k])[0] + 1) for k, r in reports)
-    # Its reports are net of its projection noise, as the replay rebuilds them.
-    _, net = forecast_residual_reports(sent, [_ground(drone)], net=True)
+    # Its reports are those the replay rebuilds from what it sent.
+    _, rebuilt = forecast_residual_reports(sent, [_ground(drone)])
     target_ids = load_scenario("case2").target_ids
     for k, report in reports:
         for target_id, noise in zip(report.target_ids, report.noise, strict=True):
-            want = net[k, 0, target_ids.index(target_id)]
+            want = rebuilt[k, 0, target_ids.index(target_id)]
             np.testing.assert_allclose(noise, want, rtol=2e-3, atol=1e-4)  # half floats
-    from dronefl.deploy.launcher import DeployConfig
-
-    with pytest.raises(ValueError, match="--net-reports"):
-        DeployConfig(scenario="case2", out=tmp_path, net_reports=True)

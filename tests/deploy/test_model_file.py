@@ -1,6 +1,6 @@
 """A deployment's model file carries its architecture: the drones build the predictor the file
-holds, and a preset that changes the model without changing its weights' shapes (``metric``
-box sizes) can never be flown with another preset's reading."""
+holds, and a setting that changes the model without changing its weights' shapes (``metric``
+box sizes) can never be flown with another setting's reading."""
 
 import numpy as np
 import pytest
@@ -9,18 +9,17 @@ import torch
 from dronefl.deploy.clientapp import load_model, save_model
 from dronefl.deploy.drone import load_predictor
 from dronefl.deploy.processes import DeployError
-from dronefl.fl.records import closed_loop_settings
+from dronefl.fl.records import online_settings
 from dronefl.models.model import PredictorConfig, build_model, predictor_config
+from dronefl.settings import Setting
 
 
-def _model(preset: str) -> PredictorConfig:
-    return closed_loop_settings(
-        preset, "dronefl", past_steps=10, stride=2, epochs=1, lr=3e-4, seed=0
-    ).model
+def _model(name: str, *overrides: str) -> PredictorConfig:
+    return online_settings(Setting.load(name, overrides), "dronefl", 0, (160.0, 120.0)).model
 
 
 def test_predictor_config_round_trips_through_json():
-    config = _model("metric-scaffold")
+    config = _model("recommended")
     assert config.box_size == "metric"
     assert PredictorConfig.from_json(config.to_json()) == config
     with pytest.raises(ValueError, match="unknown fields"):
@@ -32,7 +31,7 @@ def test_predictor_config_round_trips_through_json():
 
 
 def test_model_file_round_trips_weights_round_and_architecture(tmp_path):
-    config = _model("metric-scaffold")
+    config = _model("recommended")
     state = build_model(config, seed=3).state_dict()
     save_model(tmp_path / "m.npz", state, 7, config)
     saved = load_model(tmp_path / "m.npz")
@@ -42,8 +41,8 @@ def test_model_file_round_trips_weights_round_and_architecture(tmp_path):
 
 
 def test_the_drone_flies_the_architecture_in_the_file(tmp_path):
-    ours, metric = _model("ours"), _model("metric-scaffold")
-    # The two presets' models have the same weights, so only the file can tell them apart.
+    ours, metric = _model("recommended", "model.box_size=image"), _model("recommended")
+    # The two settings' models have the same weights, so only the file can tell them apart.
     assert ours != metric
     state = build_model(metric, seed=0).state_dict()
     assert {k: v.shape for k, v in state.items()} == {
@@ -51,12 +50,12 @@ def test_the_drone_flies_the_architecture_in_the_file(tmp_path):
     }
     save_model(tmp_path / "m.npz", state, 0, metric)
     assert load_predictor(tmp_path / "m.npz", past_steps=10).config == metric
-    save_model(tmp_path / "m20.npz", build_model(_model("ours")).state_dict(), 0, ours)
+    save_model(tmp_path / "m20.npz", build_model(ours).state_dict(), 0, ours)
     with pytest.raises(DeployError, match="L_p = 10"):
         load_predictor(tmp_path / "m20.npz", past_steps=20)
 
 
-def test_a_file_from_before_the_architecture_record_holds_ours(tmp_path):
+def test_a_file_without_an_architecture_record_holds_the_default_model(tmp_path):
     config = predictor_config("dronefl", 10, 1)
     state = build_model(config).state_dict()
     np.savez(
@@ -64,4 +63,4 @@ def test_a_file_from_before_the_architecture_record_holds_ours(tmp_path):
         __server_round__=np.array(0),
         **{k: v.numpy() for k, v in state.items()},
     )
-    assert load_model(tmp_path / "old.npz").model == config == _model("ours")
+    assert load_model(tmp_path / "old.npz").model == config

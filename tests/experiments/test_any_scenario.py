@@ -13,25 +13,20 @@ from typer.testing import CliRunner
 
 from dronefl.cli import app
 from dronefl.config import load_scenario
-from dronefl.experiments.episode import EpisodeMetrics
-from dronefl.experiments.fl_offline import OfflineResults
-from dronefl.experiments.table1 import (
-    METRICS,
-    TABLE1_METHODS,
-    _finished,
-    episode_configs,
-    row_name,
-    run_table1,
-)
-from dronefl.experiments.track import TrackConfig, setting_fields
+from dronefl.experiments.table1 import TABLE1_METHODS, episode_configs, run_table1
+from dronefl.experiments.track import TrackConfig
+from dronefl.results.episode import EpisodeMetrics
+from dronefl.results.fl import OfflineResults
+from dronefl.results.table1 import METRICS, row_name
+from dronefl.settings import Setting
 
 #: Table I's methods with the projection detector (the image baseline flies on frames only).
 TRACK_METHODS = TABLE1_METHODS["projection"]
 SCENARIO = Path(__file__).parents[1] / "data" / "scenarios" / "farm_5x8.yaml"
 #: Short settings: 20 s of crop field and 1 FL round to pretrain, 18 s episodes with an FL
-#: round (of one local epoch) every 8 s, no GIF.
-SHORT = ["--pretrain-rounds", "1", "--pretrain-seconds", "20", "--duration", "18",
-         "--fl-period", "8", "--epochs", "1", "--no-animate"]  # fmt: skip
+#: round every 8 s, no GIF.
+QUICK = ["pretraining.rounds=1", "pretraining.seconds=20", "learning.period=8"]
+SHORT = ["--duration", "18", "--no-animate", *(a for o in QUICK for a in ("--set", o))]
 
 
 def _invoke(*args: str) -> str:
@@ -97,7 +92,7 @@ def test_every_method_flies_the_custom_scenario(table_dir, method):
 def test_pretraining_filled_the_empty_cache_once_per_kind(table_dir):
     folder = table_dir / "pretrained" / "farm_5x8"
     kinds = sorted(p.name.split("-")[0] for p in folder.iterdir() if not p.name.startswith("data"))
-    # --pretrain-gaps auto: DroneFL's model at both candidates, the orchard validation flight
+    # detection_gaps = "auto": DroneFL's model at both candidates, the orchard validation flight
     # and the choice; the centralized model once, at the chosen probability.
     assert kinds == ["centralized", "dronefl", "dronefl", "gaps", "orchard"]
     assert len(list(folder.glob("data-*"))) == 1  # one recording shared by all
@@ -107,9 +102,8 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     out = table_dir / "table"
     before = {p: p.stat().st_mtime_ns for p in out.rglob("metrics.json")}
     base = TrackConfig(
-        scenario=load_scenario(SCENARIO), out=out, duration=18.0, fl_period=8.0,
-        pretrained=table_dir / "pretrained", pretrain_rounds=1, pretrain_seconds=20.0,
-        **setting_fields("recommended", epochs=1),  # what `track` flew: its default setting
+        scenario=load_scenario(SCENARIO), out=out, duration=18.0,
+        setting=Setting.load("recommended", QUICK), pretrained=table_dir / "pretrained",
     )  # fmt: skip
 
     episodes = run_table1(base, (base.scenario,), TRACK_METHODS, seeds=(0,))
@@ -143,32 +137,6 @@ def test_table1_reuses_the_finished_episodes(table_dir):
     assert (out / "table1.png").stat().st_size > 10_000
 
 
-def test_an_episode_finished_before_the_sent_error_existed_gets_it_from_its_log(
-    table_dir, tmp_path
-):
-    flown = table_dir / "table" / "farm_5x8" / "dronefl" / "seed0"
-    old = tmp_path / "seed0"
-    shutil.copytree(flown, old)
-    data = json.loads((old / "metrics.json").read_text())
-    del data["tracking"]["sent_prediction_error"]
-    (old / "metrics.json").write_text(json.dumps(data))
-    written = (old / "metrics.json").read_bytes()
-    config = TrackConfig(
-        scenario=load_scenario(SCENARIO), out=old, method="dronefl", seed=0, duration=18.0,
-        fl_period=8.0, pretrained=table_dir / "pretrained", pretrain_rounds=1,
-        pretrain_seconds=20.0, **setting_fields("recommended", epochs=1),
-    )  # fmt: skip
-
-    reused = _finished(config)
-
-    expected = EpisodeMetrics.load(flown / "metrics.json").tracking.sent_prediction_error
-    assert reused is not None and np.isfinite(expected)
-    assert reused.tracking.sent_prediction_error == expected
-    assert (old / "metrics.json").read_bytes() == written  # the old result is left as it was
-    (old / "episode.npz").write_bytes(b"not an npz")
-    assert np.isnan(_finished(config).tracking.sent_prediction_error)
-
-
 @pytest.mark.slow
 def test_table1_adds_dronefl_s_label_ablation_rows(table_dir, tmp_path):
     # Issue #14's label-ablation rows: DroneFL again with filtered and ground-truth labels,
@@ -176,9 +144,8 @@ def test_table1_adds_dronefl_s_label_ablation_rows(table_dir, tmp_path):
     out = tmp_path / "table"
     shutil.copytree(table_dir / "table", out)
     base = TrackConfig(
-        scenario=load_scenario(SCENARIO), out=out, duration=18.0, fl_period=8.0,
-        pretrained=table_dir / "pretrained", pretrain_rounds=1, pretrain_seconds=20.0,
-        **setting_fields("recommended", epochs=1),
+        scenario=load_scenario(SCENARIO), out=out, duration=18.0,
+        setting=Setting.load("recommended", QUICK), pretrained=table_dir / "pretrained",
     )  # fmt: skip
     with pytest.raises(ValueError, match="--label-ablation"):
         episode_configs(base, (base.scenario,), ("fixed",), (0,), label_ablation=True)

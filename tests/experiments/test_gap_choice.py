@@ -1,6 +1,6 @@
-"""``--pretrain-gaps auto``: the candidate that predicts the orchard validation recording
-better is chosen (the smaller on a tie), the choice is cached, and the windows are scored as
-``evaluate`` scores them."""
+"""``pretraining.detection_gaps = "auto"``: the candidate that predicts the orchard validation
+recording better is chosen (the smaller on a tie), the choice is cached, and the windows are
+scored as ``evaluate`` scores them."""
 
 from dataclasses import replace
 
@@ -12,7 +12,7 @@ from dronefl.experiments import gap_choice
 from dronefl.experiments.gap_choice import (
     GapChoice,
     choose_detection_gaps,
-    resolved_gaps,
+    resolve_gaps,
     validation_dir,
     window_errors,
     window_set,
@@ -22,14 +22,18 @@ from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
 from dronefl.models.model import build_model
 from dronefl.models.train import evaluate
 from dronefl.models.windows import FEATURE_DIM
-from dronefl.results import ResultError
+from dronefl.serialize import ResultError
+from dronefl.settings import Setting
 
 CASE1 = load_scenario("case1")
 
 
-def _spec() -> PretrainSpec:
+def _spec(gaps: str = "auto") -> PretrainSpec:
     """Case 1 with a 40 s validation recording (the recording is as long as the crop field's)."""
-    return PretrainSpec(CASE1, "dronefl", preset="metric-scaffold", duration=40.0)
+    setting = Setting.load(
+        "recommended", ["pretraining.seconds=40", f"pretraining.detection_gaps={gaps}"]
+    )
+    return PretrainSpec(CASE1, setting, "dronefl")
 
 
 def _place(state: dict[str, torch.Tensor], spec: PretrainSpec, folder) -> None:
@@ -40,7 +44,7 @@ def _place(state: dict[str, torch.Tensor], spec: PretrainSpec, folder) -> None:
 
 def _models(quick_pretrained) -> tuple[dict, dict]:
     """The quick pretrained model and an untrained one (far worse)."""
-    quick = PretrainSpec(CASE1, "dronefl", preset="metric-scaffold")
+    quick = PretrainSpec(CASE1, Setting.load("recommended"), "dronefl")
     good = pretrained_state(quick, quick_pretrained, progress=False)
     return good, build_model(quick.model, seed=3).state_dict()
 
@@ -60,16 +64,14 @@ def test_the_better_candidate_is_chosen_the_smaller_on_a_tie_and_the_choice_is_c
         choice = choose_detection_gaps(spec, folder, progress=False)
         assert choice.chosen == chosen
         assert set(choice.mse) == {0.0, 0.3}
-        assert resolved_gaps(spec, "auto", folder, progress=False).detection_gaps == chosen
+        assert resolve_gaps(spec, folder, progress=False).detection_gaps == chosen
     assert choice.mse[0.0] == choice.mse[0.3]
     # Cached: no recording or scoring again, and what was saved is what was chosen.
     monkeypatch.setattr(gap_choice, "simulate", lambda *a, **k: pytest.fail("re-recorded"))
     assert choose_detection_gaps(spec, tmp_path / "b", progress=False) == GapChoice.load(
         GapChoice.path(spec, tmp_path / "b", gap_choice.GAP_CANDIDATES)
     )
-    assert resolved_gaps(spec, 0.15, tmp_path).detection_gaps == 0.15
-    with pytest.raises(ValueError, match="--pretrain-gaps: must be 'auto' or in"):
-        resolved_gaps(spec, "often", tmp_path)
+    assert resolve_gaps(_spec("0.15"), tmp_path).detection_gaps == 0.15
     corrupt = GapChoice.path(spec, tmp_path / "a", gap_choice.GAP_CANDIDATES)
     corrupt.write_text('{"chosen": 0.3')
     with pytest.raises(ResultError, match="not a detection-gap choice"):

@@ -19,14 +19,20 @@ from dronefl.experiments import pretrain as pretrain_module
 from dronefl.experiments.pretrain import PretrainSpec, held_out_mse, pretrain, pretrained_state
 from dronefl.experiments.simulate import simulate
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
-from dronefl.fl.records import FlSettings, RoundRecord
+from dronefl.fl.records import RoundRecord
 from dronefl.models.model import build_model
+from dronefl.settings import Setting
 
 SCENARIO = load_scenario("case1")
 
 
+def _spec(kind: str = "dronefl", *overrides: str, setting: str = "recommended") -> PretrainSpec:
+    """Case 1's pretraining of ``kind`` as the named setting with ``overrides`` says."""
+    return PretrainSpec(SCENARIO, Setting.load(setting, overrides), kind)
+
+
 def test_editing_the_scenario_changes_the_cache_key(tmp_path):
-    spec = PretrainSpec(SCENARIO, "dronefl")
+    spec = _spec()
     raw = {
         "name": "case1",
         "targets": [{"id": 1, "lane": 2, "start_x": 30.0}, {"id": 2, "lane": 20, "start_x": 130.0}],
@@ -42,24 +48,27 @@ def test_editing_the_scenario_changes_the_cache_key(tmp_path):
 
 
 def test_every_training_setting_is_in_the_cache_key(tmp_path):
-    spec = PretrainSpec(SCENARIO, "dronefl")
+    spec = _spec()
     variants = [
         spec,
-        replace(spec, past_steps=8),
-        replace(spec, stride=3),
-        replace(spec, rounds=5),
-        replace(spec, duration=300.0),
-        replace(spec, recording_seed=7),
+        _spec("dronefl", "model.past_steps=8"),
+        _spec("dronefl", "pretraining.stride=3"),
+        _spec("dronefl", "pretraining.rounds=5"),
+        _spec("dronefl", "training.lr=1e-3"),
+        _spec("dronefl", "model.box_size=image"),
         replace(spec, kind="centralized"),
         replace(spec, detection_gaps=0.3),
+        _spec("dronefl", "pretraining.seconds=300"),
+        replace(spec, recording_seed=7),
     ]
     assert len({v.settings(tmp_path).out_dir for v in variants}) == len(variants)
     # The recording is shared by the two kinds and by every training setting.
-    assert {v.settings(tmp_path).run_dir for v in variants[:4] + variants[6:]} == {
-        spec.settings(tmp_path).run_dir
-    }
-    assert variants[-1].settings(tmp_path).detection_gaps == 0.3
-    with pytest.raises(ValueError, match="--pretrain-gaps"):
+    assert {v.settings(tmp_path).run_dir for v in variants[:8]} == {spec.settings(tmp_path).run_dir}
+    # What the setting says of the fusion, the planner or the online rounds is not.
+    others = ("fusion.temporal_kernel=false", "planner.distance_at=next", "learning.epochs=3")
+    assert _spec("dronefl", *others).settings(tmp_path) == spec.settings(tmp_path)
+    assert variants[7].settings(tmp_path).detection_gaps == 0.3
+    with pytest.raises(ValueError, match="detection_gaps"):
         replace(spec, detection_gaps=2.0)
 
 
@@ -80,7 +89,7 @@ def test_changed_code_changes_the_cache_key(tmp_path, monkeypatch):
         pretrain.code_digest(("sim", "gone.py"), package)
 
     # Recording code keys the recording and the model; training code the model alone.
-    spec = PretrainSpec(SCENARIO, "dronefl")
+    spec = _spec()
     first = spec.settings(tmp_path)
     digest = pretrain.package_digest
     monkeypatch.setattr(
@@ -118,7 +127,8 @@ def _processes_tagged(tag: str) -> list[int]:
 def test_a_client_app_failing_in_pretraining_ends_the_command(tmp_path):
     # Prepare: the crop-field recording pretraining would make, with every drone's log corrupt,
     # so that each ClientApp raises inside the Flower simulation.
-    spec = PretrainSpec(SCENARIO, "dronefl", rounds=2, duration=10.0)
+    spec = _spec("dronefl", "pretraining.rounds=2", "pretraining.seconds=10",
+                 "pretraining.detection_gaps=0")  # fmt: skip
     data = Path(spec.settings(tmp_path).run_dir)
     simulate(SCENARIO, environment="crop_field", duration=10.0, seed=spec.recording_seed,
              out=data, progress=False, plot=False)  # fmt: skip
@@ -127,7 +137,8 @@ def test_a_client_app_failing_in_pretraining_ends_the_command(tmp_path):
     tag = f"DRONEFL_TEST_{uuid.uuid4().hex}"
     env = {**os.environ, tag: "1", "FLWR_TELEMETRY_ENABLED": "0", "MPLBACKEND": "Agg"}
     command = [sys.executable, "-m", "dronefl.cli", "pretrain", "--scenario", "case1",
-               "--rounds", "2", "--duration", "10", "--out", str(tmp_path)]  # fmt: skip
+               "--set", "pretraining.rounds=2", "--set", "pretraining.seconds=10",
+               "--set", "pretraining.detection_gaps=0", "--out", str(tmp_path)]  # fmt: skip
 
     # Execute
     started = time.monotonic()
@@ -146,26 +157,22 @@ def test_a_client_app_failing_in_pretraining_ends_the_command(tmp_path):
     assert _processes_tagged(tag) == []
 
 
-def test_the_preset_sets_what_is_pretrained_and_ours_keeps_the_cache_key(tmp_path):
-    ours = PretrainSpec(SCENARIO, "dronefl")
-    sgd = replace(ours, preset="metric-sgd")
-
-    # "ours" is FlSettings' defaults: the settings (and so the cache key) are those of a
-    # pretraining that names no preset.
-    default = FlSettings(ours.settings(tmp_path).run_dir, "", rounds=20, future_steps=1, stride=2)
-    assert replace(ours.settings(tmp_path), out_dir="") == default
-    trained = sgd.settings(tmp_path)
+def test_the_setting_sets_what_is_pretrained(tmp_path):
+    ours, paper = _spec(), _spec(setting="paper")
+    trained = ours.settings(tmp_path)
     assert (trained.optimizer, trained.lr, trained.batch_size) == ("sgd", 3e-4, 64)
-    assert sgd.model.box_size == "metric" and ours.model.box_size == "image"
-    assert replace(sgd, kind="centralized").model.d_model == 64  # the large model, same options
-    assert trained.out_dir != ours.settings(tmp_path).out_dir
-    assert trained.run_dir == ours.settings(tmp_path).run_dir  # one recording for both
-    with pytest.raises(ValueError, match="--config: 'bogus'"):
-        PretrainSpec(SCENARIO, "dronefl", preset="bogus")
+    assert (trained.epochs, trained.rounds, trained.stride, trained.future_steps) == (10, 20, 2, 1)
+    assert ours.model.box_size == "metric" and paper.model.box_size == "image"
+    assert paper.settings(tmp_path).optimizer == "adam"
+    assert replace(ours, kind="centralized").model.d_model == 64  # the large model, same options
+    assert trained.out_dir != paper.settings(tmp_path).out_dir
+    assert trained.run_dir == paper.settings(tmp_path).run_dir  # one recording for both
+    with pytest.raises(ValueError, match="kind"):
+        PretrainSpec(SCENARIO, Setting.load(), "bogus")
 
 
 def test_held_out_mse_reads_the_last_evaluated_round(tmp_path):
-    spec = PretrainSpec(SCENARIO, "dronefl", rounds=2)
+    spec = _spec("dronefl", "pretraining.rounds=2")
     settings = spec.settings(tmp_path)
     state = build_model(spec.model).state_dict()
     history = [RoundRecord(1, {1: 4.0, 2: 3.0}), RoundRecord(2, {2: 0.5, 1: 1.5})]
@@ -184,7 +191,7 @@ def test_held_out_mse_reads_the_last_evaluated_round(tmp_path):
 
 
 def test_the_image_model_is_pretrained_on_rendered_frames_once(tmp_path):
-    spec = PretrainSpec(SCENARIO, "image", duration=8.0)
+    spec = _spec("image", "pretraining.seconds=8")
     first = pretrain(spec, tmp_path, progress=False)
 
     path = spec.model_path(tmp_path)
@@ -201,15 +208,18 @@ def test_the_image_model_is_pretrained_on_rendered_frames_once(tmp_path):
     assert path.stat().st_mtime_ns == written
     assert all(torch.equal(first[k], again[k]) for k in first)
     # Its own key: a DroneFL model of the same recording lives elsewhere; the image model's
-    # settings and training code are in its key, the preset is not (it trains as it says).
+    # settings and training code are in its key, the drones' training is not (it trains as it
+    # says).
     dronefl = replace(spec, kind="dronefl").settings(tmp_path).checkpoint_path.parent
     assert spec.image_dir(tmp_path) != dronefl and dronefl.parent == spec.image_dir(tmp_path).parent
-    assert replace(spec, past_steps=8).image_dir(tmp_path) != spec.image_dir(tmp_path)
-    assert replace(spec, preset="metric-sgd").image_dir(tmp_path) == spec.image_dir(tmp_path)
+    eight = _spec("image", "pretraining.seconds=8", "model.past_steps=8")
+    assert eight.image_dir(tmp_path) != spec.image_dir(tmp_path)
+    adam = _spec("image", "pretraining.seconds=8", "training.lr=1e-3")
+    assert adam.image_dir(tmp_path) == spec.image_dir(tmp_path)
 
 
 def test_a_stopped_pretraining_goes_on_from_its_checkpoint(tmp_path, monkeypatch):
-    spec = PretrainSpec(SCENARIO, "centralized", rounds=2, duration=30.0)
+    spec = _spec("centralized", "pretraining.rounds=2", "pretraining.seconds=30")
     whole = pretrain(spec, tmp_path / "whole", progress=False)
     # What a pretraining stopped after its first round (Ctrl-C, a kill) leaves behind: the
     # recording and round 1's checkpoint.

@@ -4,7 +4,7 @@ drones' noise reports rebuilt from their records."""
 
 import json
 import pickle
-from dataclasses import asdict, fields, replace
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -14,21 +14,21 @@ from dronefl.cli import app
 from dronefl.config import load_scenario
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
 from dronefl.experiments.replay import (
-    REPORTS_NAME,
     EpisodeError,
     drone_reports,
-    flown_config,
     format_result,
     load_episode,
     oracle_weighting_mse,
     replay,
-    replay_config,
+    replay_setting,
     temporal_oracle,
 )
 from dronefl.models.online import OnboardRecord
+from dronefl.results.episode import REPORTS_NAME
+from dronefl.settings import Setting
 from dronefl.sim.camera import PinholeCamera
-from dronefl.tracking import Fuser, PositionMeasurement, fusion_config
-from dronefl.tracking.fusion import TEMPORAL_KERNEL, fusion_record
+from dronefl.tracking import Fuser, PositionMeasurement
+from dronefl.tracking.fusion import TEMPORAL_KERNEL, CloudFusion, cloud_fusion
 
 DT = 0.2  # s, the scenarios' step
 
@@ -54,14 +54,34 @@ def _episode(folder, n_steps=150, seed=0):
         prediction=prediction,
         drone_position=np.zeros((n_steps + 1, 3, 2)),
     )
-    (folder / "metrics.json").write_text(json.dumps({"config": {"case": 2, "seed": seed}}))
+    _record_setting(folder, None)
     return prediction, truth
+
+
+def _record_setting(folder, setting):
+    """Write the episode's ``metrics.json`` naming Case 2 and, unless ``None``, ``setting``."""
+    config = {"scenario": "case2", "seed": 0}
+    if setting is not None:
+        config |= {"setting_name": setting.name, "setting_values": setting.to_dict()}
+    (folder / "metrics.json").write_text(json.dumps({"config": config}))
+
+
+def _filters(name="recommended", reported=False, **fusion) -> CloudFusion:
+    """Case 2's filters as the setting ``name`` (with ``fusion`` fields changed) makes them."""
+    setting = Setting.load(name).with_values(fusion=fusion) if fusion else Setting.load(name)
+    return cloud_fusion(setting.fusion, reported, load_scenario("case2"))
+
+
+def _one_filter(method="robust", **config) -> CloudFusion:
+    """Case 2's fusion filter alone (the planner on it), ``config`` fields changed."""
+    fusion = _filters("paper", method=method).fusion
+    return CloudFusion(replace(fusion, **config))
 
 
 def test_replay_reports_each_drone_beside_the_fused_track(tmp_path):
     prediction, truth = _episode(tmp_path / "ep")
     episode = load_episode(tmp_path / "ep")
-    result = replay(episode, replay_config(episode.scenario, method="paper"))
+    result = replay(episode, _one_filter("paper"))
     target2 = result.targets[1]
     # Per-drone errors by hand: prediction at k against the truth at k + 1.
     by_hand = {i + 1: np.mean(((prediction[:, i, 1] - truth[1:, 1]) ** 2).sum(-1)) for i in (0, 1)}
@@ -71,7 +91,7 @@ def test_replay_reports_each_drone_beside_the_fused_track(tmp_path):
         assert d.n == 150
     assert target2.recorded_mse == pytest.approx(0.02, rel=1e-9)  # (0.1^2 + 0.1^2)
     # The same stream through a Fuser by hand gives the same filtered track error.
-    fuser = Fuser(episode.scenario.target_ids, episode.scenario.drone_ids, result.fusion)
+    fuser = Fuser(episode.scenario.target_ids, episode.scenario.drone_ids, result.fusion.tracks)
     errors = []
     for k in range(150):
         ms = [
@@ -123,30 +143,27 @@ def test_oracle_weighting_by_hand():
 
 
 def test_replay_with_a_second_filter_for_the_tracks(tmp_path):
-    # `track --track-psd 10`: the tracks are a q = 10 filter's, the labels the fusion's own.
+    # The recommended setting's Case 2: the tracks are a q = 30 filter's, the labels the
+    # fusion's own (q = 1).
     _episode(tmp_path / "ep")
     episode = load_episode(tmp_path / "ep")
-    config = replay_config(episode.scenario)
-    one = replay(episode, config)
-    two = replay(episode, config, track_psd=10.0)
-    fast = replay(episode, replace(config, acceleration_psd=10.0))
+    one = replay(episode, _filters(random_walk_planner_psd=None, temporal_kernel=False))
+    two = replay(episode, _filters(temporal_kernel=False))
+    fast = replay(episode, CloudFusion(two.fusion.planner))
 
-    assert two.track_psd == 10.0 and one.track_psd is None
+    assert two.fusion.planner.acceleration_psd == 30.0 and one.fusion.planner is None
     assert two.fused_mse == fast.fused_mse != one.fused_mse  # the planner's filter
     assert two.rejections == fast.rejections
     assert two.label_mse == one.label_mse != fast.label_mse  # the fusion's own filter
-    assert "a second filter with q = 10.0" in format_result(two)
-    with pytest.raises(ValueError, match="--track-psd"):
-        replay(episode, config, track_psd=-1.0)
+    assert "a second filter with q = 30.0" in format_result(two)
 
 
 def test_replay_with_the_temporal_kernel_moves_the_tracks_not_the_labels(tmp_path):
-    # `track --temporal-kernel`: the tracks are the kernel's, the labels the filter's.
+    # The tracks are the kernel's, the labels the filter's.
     _episode(tmp_path / "ep")
     episode = load_episode(tmp_path / "ep")
-    config = replay_config(episode.scenario)
-    plain = replay(episode, config)
-    kernel = replay(episode, replace(config, temporal_kernel=TEMPORAL_KERNEL))
+    plain = replay(episode, _one_filter())
+    kernel = replay(episode, _one_filter(temporal_kernel=TEMPORAL_KERNEL))
 
     assert kernel.fused_mse != plain.fused_mse
     assert kernel.label_mse == plain.label_mse and kernel.rejections == plain.rejections
@@ -163,7 +180,7 @@ def test_replay_splits_the_fused_error_by_the_drones_that_saw_the_target(tmp_pat
     np.savez(tmp_path / "ep" / "episode.npz", **arrays)
     episode = load_episode(tmp_path / "ep")
 
-    result = replay(episode, replay_config(episode.scenario, method="paper"))
+    result = replay(episode, _one_filter("paper"))
 
     views = result.by_views
     # Target 2 is seen by drones 1 and 2 at all 150 steps, targets 1 and 3 by drone 1 alone but
@@ -183,43 +200,39 @@ def test_replay_command_writes_json_and_markdown(tmp_path):
     runner = CliRunner()
     out = tmp_path / "out"
     result = runner.invoke(
-        app, ["replay", str(tmp_path / "ep"), "--labels", "filtered", "--out", str(out)]
+        app, ["replay", str(tmp_path / "ep"), "--setting", "paper", "--out", str(out)]
     )
     assert result.exit_code == 0, result.output
     assert "| target | drone 1 | drone 2 |" in result.output
     data = json.loads((out / "replay.json").read_text())
     assert data["labels"] == "filtered"
-    assert data["fusion"]["method"] == "robust"
+    assert data["fusion"]["fusion"]["method"] == "paper"
     assert len(data["targets"]) == 3
     assert data["targets"][1]["oracle_over_best"] < 1.0
     assert "| oracle / best |" in result.output
     assert (out / "replay.md").read_text().startswith("Replay of")
 
 
-def test_as_flown_starts_from_the_episodes_fusion_and_an_option_given_wins(tmp_path):
+def test_as_flown_starts_from_the_episodes_setting_and_set_changes_it(tmp_path):
     _, truth = _episode(tmp_path / "ep")
-    _records_checkpoint(tmp_path / "ep", truth)  # --detected-only reads the detected flags
+    _records_checkpoint(tmp_path / "ep", truth)  # drone.detected_only reads the detected flags
     runner = CliRunner()
     refused = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--as-flown"])
-    assert refused.exit_code == 2 and "metrics.json: records no fusion settings" in refused.output
-    flown = replace(fusion_config(load_scenario("case2"), "paper"), gate=None, adaptive=False)
-    config = {"case": 2, "seed": 0, "detected_only": True,
-              "fusion_config": json.dumps(asdict(flown), sort_keys=True)}  # fmt: skip
-    (tmp_path / "ep" / "metrics.json").write_text(json.dumps({"config": config}))
+    assert refused.exit_code == 2 and "metrics.json: records no setting" in refused.output
+    flown = Setting.load("paper", ["drone.detected_only=true"])
+    _record_setting(tmp_path / "ep", flown)
     episode = load_episode(tmp_path / "ep")
-    assert episode.flown_fusion == flown and episode.detected_only
-    assert flown_config(episode, acceleration_psd=0.5) == replace(flown, acceleration_psd=0.5)
+    assert episode.setting == flown and episode.withheld
 
     out = tmp_path / "out"
-    argv = ["replay", str(tmp_path / "ep"), "--as-flown", "--acceleration-psd", "0.5"]
+    argv = ["replay", str(tmp_path / "ep"), "--as-flown", "--set", "fusion.constant_speed_psd=0.5"]
     result = runner.invoke(app, [*argv, "--out", str(out)])
     assert result.exit_code == 0, result.output
-    used = json.loads((out / "replay.json").read_text())["fusion"]
-    assert used == {**asdict(flown), "acceleration_psd": 0.5}  # not the CLI's defaults
-    assert json.loads((out / "replay.json").read_text())["detected_only"]  # as flown
-    # Without --as-flown the options left out are the scenario's defaults (robust, gated).
+    used = json.loads((out / "replay.json").read_text())
+    assert used["fusion"]["fusion"]["method"] == "paper" and used["labels"] == "filtered"
+    # Without --as-flown: the named setting (recommended by default).
     runner.invoke(app, ["replay", str(tmp_path / "ep"), "--out", str(out)])
-    assert json.loads((out / "replay.json").read_text())["fusion"]["method"] == "robust"
+    assert json.loads((out / "replay.json").read_text())["fusion"]["fusion"]["method"] == "robust"
 
 
 def test_bad_episode_folders_fail_with_one_line(tmp_path):
@@ -235,14 +248,13 @@ def test_bad_episode_folders_fail_with_one_line(tmp_path):
     assert result.exit_code == 2
 
 
-def test_unknown_fusion_settings_are_named(tmp_path):
+def test_bad_settings_are_named(tmp_path):
     _episode(tmp_path / "ep")
-    episode = load_episode(tmp_path / "ep")
-    with pytest.raises(ValueError, match="method"):
-        replay_config(episode.scenario, method="kalman")
-    result = CliRunner().invoke(app, ["replay", str(tmp_path / "ep"), "--max-std", "-1"])
+    result = CliRunner().invoke(
+        app, ["replay", str(tmp_path / "ep"), "--set", "fusion.method=kalman"]
+    )
     assert result.exit_code == 2
-    assert "max_std" in result.output
+    assert "fusion.method: 'kalman'" in result.output
 
 
 def _records_checkpoint(folder, truth):
@@ -280,32 +292,12 @@ def test_replay_rebuilds_the_drones_noise_reports_from_their_records(tmp_path):
     assert np.trace(final[0, 1]) == pytest.approx(2 * 0.25, rel=0.35)
     assert np.trace(final[1, 1]) == pytest.approx(2 * 0.04, rel=0.35)
     assert np.isnan(final[2]).all() and np.isnan(final[1, 0]).all()
-    result = replay(episode, replay_config(episode.scenario, noise_split="reported"))
-    assert result.fusion.noise_split == "reported"
+    result = replay(episode, _one_filter(noise_split="reported"))
+    assert result.fusion.fusion.noise_split == "reported"
     assert result.targets[1].fused_over_best < 1.0
     runner = CliRunner()
-    ok = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--noise-split", "reported"])
+    ok = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--set", "drone.correct_bias=false"])
     assert ok.exit_code == 0, ok.output
-    bad = runner.invoke(app, ["replay", str(tmp_path / "ep"), "--noise-split", "oracle"])
-    assert bad.exit_code == 2 and "noise_split" in bad.output
-
-
-def test_replay_rebuilds_net_reports_and_knows_an_episode_flown_with_them(tmp_path):
-    prediction, truth = _episode(tmp_path / "ep", n_steps=400)
-    _records_checkpoint(tmp_path / "ep", truth)
-    episode = load_episode(tmp_path / "ep")
-    _, gross = drone_reports(episode)
-    _, net = drone_reports(episode, net=True)
-    # Exact detections: no projection noise, so net = gross where above the floor.
-    assert np.allclose(net[-1, 0, 0], gross[-1, 0, 0])
-    config = replay_config(episode.scenario, noise_split="reported")
-    asked = replay(episode, config, net_reports=True)
-    (tmp_path / "ep" / "metrics.json").write_text(
-        json.dumps({"config": {"case": 2, "seed": 0, "net_reports": True}})
-    )
-    flown = load_episode(tmp_path / "ep")
-    assert flown.net_reports and not episode.net_reports
-    assert replay(flown, config).fused_mse == asked.fused_mse
 
 
 def test_replay_corrects_the_drones_bias_as_they_would_in_flight(tmp_path):
@@ -317,7 +309,7 @@ def test_replay_corrects_the_drones_bias_as_they_would_in_flight(tmp_path):
     np.savez(folder / "episode.npz", **arrays)
     _records_checkpoint(folder, truth)
     episode = load_episode(folder)
-    config = replay_config(episode.scenario)
+    config = _one_filter()
     raw = replay(episode, config)
     corrected = replay(episode, config, correct_bias=True)
     assert corrected.correct_bias and not raw.correct_bias
@@ -326,16 +318,15 @@ def test_replay_corrects_the_drones_bias_as_they_would_in_flight(tmp_path):
         drone1_after = {d.drone_id: d.mse for d in after.drones}[1]
         assert drone1 == pytest.approx(0.5 + 0.52, rel=0.2)  # noise 2 x 0.25 + offset²
         assert drone1_after < 0.7  # the offset is gone after the EMA's first ~50 steps
-    assert (
-        "bias-corrected"
-        in CliRunner().invoke(app, ["replay", str(folder), "--correct-bias"]).output
-    )
-    # An episode whose drones corrected in flight is not corrected twice.
-    (folder / "metrics.json").write_text(
-        json.dumps({"config": {"case": 2, "seed": 0, "correct_bias": True}})
-    )
+    assert "bias-corrected" in CliRunner().invoke(app, ["replay", str(folder)]).output
+    # An episode whose drones corrected in flight is not corrected twice, nor uncorrected.
+    _record_setting(folder, Setting.load())
+    flown = load_episode(folder)
     with pytest.raises(EpisodeError, match="corrected in flight already"):
-        replay(load_episode(folder), config, correct_bias=True)
+        replay(flown, config, correct_bias=True)
+    assert not replay_setting(flown, Setting.load()).correct_bias
+    with pytest.raises(EpisodeError, match="drone.correct_bias = true"):
+        replay_setting(flown, Setting.load("paper"))
 
 
 def test_replay_fuses_only_what_the_drones_detected(tmp_path):
@@ -354,7 +345,7 @@ def test_replay_fuses_only_what_the_drones_detected(tmp_path):
     checkpoint.records[0].detected[100:200, 1] = False
     (folder / CHECKPOINT_NAME).write_bytes(pickle.dumps(checkpoint))
     episode = load_episode(folder)
-    config = replay_config(episode.scenario)
+    config = _one_filter()
     every, detected = replay(episode, config), replay(episode, config, detected_only=True)
     assert detected.detected_only and not every.detected_only
     assert every.measurements - detected.measurements == 100
@@ -378,25 +369,25 @@ def test_replay_fuses_only_what_the_drones_detected(tmp_path):
         load_episode(folder)
 
 
-@pytest.mark.parametrize("noise_split", ["adaptive", "reported"])
-def test_the_recorded_fusion_settings_read_back_as_flown(tmp_path, noise_split):
-    # What `track` and `deploy up` write into metrics.json is what `replay --as-flown` reads;
-    # an adaptive split is left out, as in every episode flown before the field existed.
+def test_the_recorded_setting_reads_back_as_flown(tmp_path):
+    # What `track` and `deploy up` write into metrics.json is what `replay --as-flown` reads.
     _episode(tmp_path / "ep")
-    config = replace(fusion_config(load_scenario("case2")), noise_split=noise_split)
-    record = fusion_record(config)
-    assert ("noise_split" in json.loads(record)) == (noise_split == "reported")
-    meta = tmp_path / "ep" / "metrics.json"
-    meta.write_text(json.dumps({"config": {"case": 2, "fusion_config": record, "track_psd": 30.0}}))
+    setting = Setting.load("recommended", ["fusion.random_walk_planner_psd=10"])
+    _record_setting(tmp_path / "ep", setting)
     episode = load_episode(tmp_path / "ep")
-    assert flown_config(episode) == config and episode.flown_track_psd == 30.0
+    assert episode.setting == setting and episode.bias_corrected and episode.withheld
+    (tmp_path / "ep" / "metrics.json").write_text(
+        json.dumps({"config": {"scenario": "case2", "setting_values": {"fusion": {}}}})
+    )
+    with pytest.raises(EpisodeError, match="metrics.json: setting"):
+        load_episode(tmp_path / "ep")
 
 
 def test_a_deployed_episode_replays_with_the_reports_the_cloud_received(tmp_path):
     # `deploy up` writes reports.npz beside episode.npz: the noise each prediction came with.
     # They are fused as received (nothing withheld or rebuilt: the records stay on the drones).
     prediction, _ = _episode(tmp_path / "ep")
-    config = replace(replay_config(load_scenario("case2")), noise_split="reported")
+    config = _one_filter(noise_split="reported")
     noise = np.full((*prediction.shape[:3], 2, 2), np.nan)
     noise[:, 0] = 0.25 * np.eye(2)  # drones 1 and 2 report their true noise (the split
     noise[:, 1, 1] = 0.04 * np.eye(2)  # acts where two drones see a target: target 2)
@@ -410,11 +401,10 @@ def test_a_deployed_episode_replays_with_the_reports_the_cloud_received(tmp_path
         plain.label_mse,
         plain.measurements,
     )
-    ignored = replay(episode, replace(config, noise_split="adaptive"))
+    ignored = replay(episode, _one_filter())
     assert reported.fused_mse != ignored.fused_mse
-    for option in ("net_reports", "correct_bias"):
-        with pytest.raises(EpisodeError, match="--net-reports"):
-            replay(episode, config, **{option: True})
+    with pytest.raises(EpisodeError, match="the drones' records stay on the drones"):
+        replay(episode, config, correct_bias=True)
     np.savez(tmp_path / "ep" / REPORTS_NAME, noise=noise[:-1])
     with pytest.raises(EpisodeError, match=f"{REPORTS_NAME}: noise has shape"):
         load_episode(tmp_path / "ep")

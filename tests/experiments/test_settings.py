@@ -1,53 +1,162 @@
-"""Named closed-loop settings (``--setting``): what each sets, that options given beside it win,
-and that ``track``, ``table1`` and ``deploy up`` fly the recommended setting by default."""
+"""One typed setting: the named files load, a user's file and ``--set`` change fields, every bad
+value is named, the digest names the content, and every command and the Python API fly the
+recommended setting by default."""
 
 import dataclasses
-from dataclasses import replace
+import tomllib
 
 import pytest
 from typer.testing import CliRunner
 
 from dronefl.cli import app
-from dronefl.experiments.track import (
-    RECOMMENDED,
-    SETTING_FIELDS,
-    SETTINGS,
-    TrackConfig,
+from dronefl.settings import (
+    ADAIN_SITES,
+    BOX_SIZES,
+    DISTANCE_POINTS,
+    FUSION_METHODS,
+    LABEL_DRONES,
+    LABEL_SOURCES,
+    OPTIMIZERS,
+    STYLE_INITS,
+    Setting,
+    SettingError,
+    named_settings,
     setting_fields,
 )
 
 
-def test_every_setting_names_every_field_and_ours_is_the_config_defaults():
-    defaults = {f.name: f.default for f in dataclasses.fields(TrackConfig)}
+def test_the_named_settings_give_every_field_and_differ_where_the_paper_does():
+    assert named_settings() == ("paper", "recommended")
+    recommended, paper = Setting.load("recommended"), Setting.load("paper")
+    assert Setting.load() == recommended and recommended.name == "recommended"
+    for setting in (recommended, paper):
+        assert set(setting.to_dict()) == set(setting_fields())
+    assert (paper.training.optimizer, paper.training.lr, paper.learning.epochs) == (
+        "adam",
+        1e-3,
+        10,
+    )
+    assert (paper.learning.labels, paper.fusion.method) == ("filtered", "paper")
+    assert (recommended.learning.epochs, recommended.drone.detected_only) == (1, True)
+    assert paper.fusion.random_walk_planner_psd is None
+    assert (
+        paper.pretraining.detection_gaps == 0.0 and recommended.pretraining.detection_gaps == "auto"
+    )
 
-    assert all(set(values) == set(SETTING_FIELDS) for values in SETTINGS.values())
-    assert SETTINGS["ours"] == {name: defaults[name] for name in SETTING_FIELDS}
-    assert SETTINGS["recommended"].items() >= RECOMMENDED.items()
-    assert SETTINGS["paper"] == {
-        "preset": "paper", "labels": "filtered", "fusion": "paper", "label_drones": "all",
-        "epochs": None, "noise_split": "adaptive", "correct_bias": False, "detected_only": False,
-        "planner_distance": "next", "constant_speed_psd": None, "random_walk_track_psd": None,
-        "coverage_noise": False, "temporal_kernel": False, "pretrain_gaps": 0.0,
-    }  # fmt: skip
+
+def test_the_choices_are_the_registries_names():
+    from dronefl.models.model import PredictorConfig
+    from dronefl.models.train import TrainConfig
+    from dronefl.planning import PlannerConfig
+    from dronefl.tracking import labels, methods
+
+    assert set(FUSION_METHODS) == set(methods.FUSION_METHODS)
+    assert set(LABEL_SOURCES) == set(labels.LABEL_SOURCES)
+    assert LABEL_DRONES == labels.LABEL_DRONES
+    for optimizer in OPTIMIZERS:
+        TrainConfig(optimizer=optimizer)
+    for distance in DISTANCE_POINTS:
+        PlannerConfig(distance_at=distance)
+    for sites in ADAIN_SITES:
+        PredictorConfig(adain_sites=(sites,))
+    for init in STYLE_INITS:
+        PredictorConfig(head_style_init=init)
+    for box in BOX_SIZES:
+        PredictorConfig(box_size=box)
 
 
-def test_an_option_given_beside_a_setting_wins_also_a_false_flag():
-    chosen = setting_fields("recommended", correct_bias=False, labels=None, epochs=10)
+def test_set_overrides_one_field_and_the_digest_follows_the_content():
+    base = Setting.load()
+    changed = Setting.load("recommended", ["fusion.temporal_kernel=false", "learning.period=50"])
+    assert changed.fusion.temporal_kernel is False and changed.learning.period == 50.0
+    assert changed.name == "recommended + fusion.temporal_kernel=false learning.period=50"
+    assert changed.digest() != base.digest()
+    # The digest is the content's, whatever the name or the way there.
+    same = base.with_values(fusion={"temporal_kernel": False}, learning={"period": 50.0})
+    assert same == changed and same.digest() == changed.digest()
+    assert base.override(["fusion.temporal_kernel=false", "learning.period=50"]) == changed
+    back = Setting.load("recommended", ["fusion.random_walk_planner_psd=none"])
+    assert back.fusion.random_walk_planner_psd is None
+    assert (
+        Setting.load("recommended", ["pretraining.detection_gaps=0.3"]).pretraining.detection_gaps
+        == 0.3
+    )
+    assert Setting.load("recommended", ['model.adain_sites=["encoder"]']).model.adain_sites == (
+        "encoder",
+    )
 
-    assert chosen["correct_bias"] is False  # given: False wins over the setting's True
-    assert chosen["labels"] == "smoothed"  # None: not given, the setting's
-    assert chosen["epochs"] == 10
-    assert chosen["detected_only"] is True
-    with pytest.raises(ValueError, match="--setting: 'nope'"):
-        setting_fields("nope")
-    with pytest.raises(ValueError, match="stride"):
-        setting_fields("ours", stride=3)
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["fusion.method=kalman"], r"fusion.method: 'kalman' is not one of robust, paper"),
+        (["fusion.gate=3"], r"fusion.gate: unknown field"),
+        (["radio.loss=0.1"], r"unknown section 'radio'"),
+        (["fusion.method"], r"expected section.field=value"),
+        (["training.lr=nan"], r"training.lr: must be finite"),
+        (["training.lr=inf"], r"training.lr: must be finite"),
+        (["training.lr=0"], r"training.lr: must be > 0"),
+        (["learning.period=1e300"], r"learning.period: must be in"),
+        (["training.epochs=1.5"], r"training.epochs: must be an integer"),
+        (["drone.detected_only=1"], r"drone.detected_only: must be true or false"),
+        (["pretraining.detection_gaps=often"], r"detection_gaps: must be 'auto' or in"),
+        (["pretraining.detection_gaps=1.5"], r"detection_gaps: must be 'auto' or in"),
+        (['model.adain_sites=["decoder"]'], r"model.adain_sites: must be distinct names"),
+        (["training.optimizer=adam"], r"'scaffold' needs training.optimizer 'sgd'"),
+        (["fusion.method=paper"], r"drone.noise_reports: the paper fusion cannot use them"),
+    ],
+)
+def test_a_bad_override_is_named(overrides, message):
+    with pytest.raises(SettingError, match=message):
+        Setting.load("recommended", overrides)
+
+
+def test_a_users_file_starts_from_a_base_and_is_checked_like_a_named_one(tmp_path):
+    mine = tmp_path / "mine.toml"
+    mine.write_text('base = "paper"\n\n[learning]\nperiod = 50.0\n')
+    setting = Setting.load(str(mine))
+    assert setting.learning.period == 50.0 and setting.training == Setting.load("paper").training
+    assert Setting.from_toml(setting.to_toml()) == setting  # a whole file reads back
+    full = tmp_path / "full.toml"
+    full.write_text(setting.to_toml())
+    assert Setting.load(str(full)) == setting
+    for text, message in (
+        ('base = "paper"\n[fusion]\nmethod = 3\n', r"fusion.method: must be a name, got 3"),
+        ("[model]\npast_steps = 10\n", r"model.adain_sites: missing"),
+        ('base = "paper"\n[radio]\nloss = 0.1\n', r"unknown section 'radio'"),
+        ("not toml = = 1", r"not a readable TOML file"),
+        (f'base = "{tmp_path / "loop.toml"}"\n', r"bases form a loop"),
+    ):
+        bad = tmp_path / "loop.toml"
+        bad.write_text(text)
+        with pytest.raises(SettingError, match=message) as raised:
+            Setting.load(str(bad))
+        assert str(bad) in str(raised.value)  # the file is named
+    with pytest.raises(SettingError, match="no such file, nor a named setting"):
+        Setting.load("fastest")
+
+
+def test_setting_show_prints_every_field_with_its_doc_and_a_file_that_loads_back():
+    shown = CliRunner().invoke(app, ["setting", "show", "paper", "--set", "learning.period=50"])
+    assert shown.exit_code == 0, shown.output
+    for section, names in setting_fields().items():
+        assert f"[{section}]" in shown.output
+        for name in names:
+            assert f"\n{name} = " in shown.output
+    assert (
+        "learning.period=50" in shown.output and "seconds of flight between rounds" in shown.output
+    )
+    toml = CliRunner().invoke(app, ["setting", "show", "recommended", "--toml"])
+    assert Setting.from_dict(tomllib.loads(toml.output)) == Setting.load()
+    bad = CliRunner().invoke(app, ["setting", "show", "--set", "fusion.method=kalman"])
+    assert bad.exit_code == 2 and "fusion.method" in bad.output
 
 
 @pytest.fixture
 def captured(monkeypatch):
     """The configs the commands would run, without running them."""
     import dronefl.deploy.launcher as launcher
+    import dronefl.experiments.prepare as prepare
     import dronefl.experiments.table1 as table1
     import dronefl.experiments.track as track
 
@@ -60,6 +169,8 @@ def captured(monkeypatch):
     monkeypatch.setattr(track, "run_episode", keep)
     monkeypatch.setattr(table1, "run_table1", keep)
     monkeypatch.setattr(launcher, "run_deploy", keep)
+    stand_in = prepare.Prepared(spec=dataclasses.make_dataclass("Spec", ["model"])(None), state={})
+    monkeypatch.setattr(prepare, "prepare", lambda *a, **k: stand_in)
     return seen
 
 
@@ -73,123 +184,57 @@ def test_the_commands_fly_the_recommended_setting_by_default(command, captured, 
     _run(*command, "--out", str(tmp_path / "out"), "--pretrained", str(tmp_path / "cache"))
 
     (config,) = captured
-    for name, value in RECOMMENDED.items():
-        assert getattr(config, name) == value, name
+    assert config.setting == Setting.load("recommended")
 
 
-def test_track_flies_the_papers_setting_with_an_option_changed(captured, tmp_path):
-    _run("track", "--setting", "paper", "--fusion", "robust", "--out", str(tmp_path / "o"),
-         "--pretrained", str(tmp_path / "cache"))  # fmt: skip
+def test_track_flies_the_papers_setting_with_a_field_changed(captured, tmp_path):
+    _run("track", "--setting", "paper", "--set", "fusion.method=robust", "--out",
+         str(tmp_path / "o"), "--pretrained", str(tmp_path / "cache"))  # fmt: skip
 
     (config,) = captured
-    assert (config.preset, config.labels, config.label_drones) == ("paper", "filtered", "all")
-    assert config.fusion == "robust"  # given beside the setting
-    assert config.epochs == 10  # the paper preset's E
+    assert config.setting.fusion.method == "robust"  # given beside the setting
+    assert config.setting.learning == Setting.load("paper").learning
 
 
 def test_deploy_up_turns_a_recommended_flag_off(captured, tmp_path):
-    _run("deploy", "up", "--no-detected-only", "--out", str(tmp_path / "o"),
+    _run("deploy", "up", "--set", "drone.detected_only=false", "--out", str(tmp_path / "o"),
          "--pretrained", str(tmp_path / "cache"))  # fmt: skip
 
     (config,) = captured
-    assert config.detected_only is False and config.correct_bias is True
+    assert config.setting.drone.detected_only is False and config.setting.drone.correct_bias
 
 
-def test_the_planners_own_filter_is_for_random_walk_targets_only(tmp_path):
+def test_the_deployed_processes_receive_the_setting_whole(tmp_path):
     from dronefl.config import load_scenario
-    from dronefl.deploy.launcher import DeployConfig, _commands
+    from dronefl.deploy.launcher import SETTING_FILE, DeployConfig, _commands
 
-    def config(case: str, **chosen: object) -> TrackConfig:
-        fields = setting_fields("recommended", **chosen)
-        return TrackConfig(scenario=load_scenario(case), out=tmp_path, **fields)
-
-    # Case 2 (random walk): the recommended setting flies the planner on a q = 30 filter,
-    # recorded as the episode's track_psd (the same as `--track-psd 30` beside one filter).
-    case2 = config("case2")
-    assert case2.planner_track_psd == 30.0
-    assert case2.track_fusion_config().acceleration_psd == 30.0
-    assert case2.fusion_config().acceleration_psd == 1.0  # the labels' filter
-    assert case2.describe()["track_psd"] == 30.0 and "random_walk_track_psd" not in (
-        case2.describe()
+    setting = Setting.load("recommended", ["learning.period=25"])
+    deploy = DeployConfig(scenario="case2", out=tmp_path, setting=setting)
+    commands = _commands(deploy, load_scenario("case2"), tmp_path / "m.npz", None, tmp_path)
+    for role in ("cloud", "drone-1", "drone-3"):
+        line = commands[role]
+        assert line[line.index("--setting") + 1] == str(tmp_path / SETTING_FILE)
+    assert "--setting" not in commands["world"]
+    assert not any(
+        flag.startswith("--temporal") or flag == "--fl-period" for flag in commands["cloud"]
     )
-    explicit = replace(case2, random_walk_track_psd=None, track_psd=30.0)
-    assert explicit.settings() == case2.settings()
-    # Cases 1 and 3 (constant speed) keep one filter: their episodes are those flown before.
-    case3 = config("case3")
-    assert case3.planner_track_psd is None
-    assert case3.track_fusion_config() == case3.fusion_config()
-    assert case3.settings() == replace(case3, random_walk_track_psd=None).settings()
-    # --track-psd wins everywhere; a bad value is named.
-    assert replace(case3, track_psd=3.0).planner_track_psd == 3.0
-    assert config("case2", random_walk_track_psd=3.0).planner_track_psd == 3.0
-    with pytest.raises(ValueError, match="--random-walk-track-psd"):
-        config("case3", random_walk_track_psd=-1.0)
-    # deploy up resolves it for the scenario and hands the cloud the q it flies.
-    for case, expected in (("case2", 10.0), ("case3", None)):
-        deploy = DeployConfig(scenario=case, out=tmp_path, random_walk_track_psd=10.0)
-        cloud = _commands(deploy, load_scenario(case), tmp_path / "m.npz", None, tmp_path)["cloud"]
-        given = float(cloud[cloud.index("--track-psd") + 1]) if "--track-psd" in cloud else None
-        assert given == expected, case
-    with pytest.raises(ValueError, match="--random-walk-track-psd"):
-        DeployConfig(scenario="case2", out=tmp_path, random_walk_track_psd=0.0)
+    with pytest.raises(
+        ValueError, match="learning.labels: a deployed cloud does not know the truth"
+    ):
+        DeployConfig(
+            scenario="case2", out=tmp_path,
+            setting=Setting.load("recommended", ["learning.labels=ground_truth"]),
+        )  # fmt: skip
 
 
-def test_coverage_noise_reaches_the_fusion_and_is_recorded_only_when_set(captured, tmp_path):
+def test_the_pretraining_gaps_reach_the_predictors_pretraining_not_the_image_model_s(tmp_path):
     from dronefl.config import load_scenario
-    from dronefl.tracking.fusion import COVERAGE_NOISE_PROFILE
-
-    _run("track", "--coverage-noise", "--out", str(tmp_path / "o"),
-         "--pretrained", str(tmp_path / "cache"))  # fmt: skip
-
-    (config,) = captured
-    assert config.fusion_config().coverage_noise == COVERAGE_NOISE_PROFILE
-    assert config.track_fusion_config().coverage_noise == COVERAGE_NOISE_PROFILE
-    assert "coverage_noise" in config.describe()["fusion_config"]
-    off = replace(config, coverage_noise=False)
-    assert off.fusion_config().coverage_noise is None
-    assert "coverage_noise" not in off.describe()["fusion_config"]  # as flown before it
-    with pytest.raises(ValueError, match="--coverage-noise: needs --fusion robust"):
-        TrackConfig(
-            scenario=load_scenario("case2"), out=tmp_path, fusion="paper", coverage_noise=True
-        )
-
-
-def test_the_temporal_kernel_is_for_random_walk_targets_only(tmp_path):
-    from dronefl.config import load_scenario
-    from dronefl.deploy.launcher import DeployConfig, _commands
-    from dronefl.tracking.fusion import TEMPORAL_KERNEL
-
-    for case, kernel in (("case2", TEMPORAL_KERNEL), ("case3", None)):
-        scenario = load_scenario(case)
-        fields = setting_fields("recommended", temporal_kernel=True)
-        config = TrackConfig(scenario=scenario, out=tmp_path, **fields)
-        assert config.fusion_config().temporal_kernel == kernel
-        assert config.track_fusion_config().temporal_kernel == kernel
-        assert ("temporal_kernel" in config.describe()["fusion_config"]) == (kernel is not None)
-        deploy = DeployConfig(scenario=case, out=tmp_path, temporal_kernel=True)
-        cloud = _commands(deploy, scenario, tmp_path / "m.npz", None, tmp_path)["cloud"]
-        assert ("--temporal-kernel" in cloud) == (kernel is not None)
-
-
-def test_pretrain_gaps_reach_the_predictors_pretraining_not_the_image_model_s(tmp_path):
-    from dronefl.config import load_scenario
-    from dronefl.deploy.launcher import DeployConfig
+    from dronefl.experiments.gap_choice import resolve_gaps
+    from dronefl.experiments.pretrain import PretrainSpec
 
     scenario = load_scenario("case2")
-    for method, gaps in (("dronefl", 0.3), ("fixed", 0.3), ("centralized", 0.3)):
-        config = TrackConfig(scenario, tmp_path, method=method, pretrain_gaps=gaps)
-        assert config.pretrain_spec().detection_gaps == gaps
-        assert config.describe()["pretrain_gaps"] == gaps
-    image = TrackConfig(scenario, tmp_path, method="centralized-image", detector="yolo",
-                        pretrain_gaps=0.3)  # fmt: skip
-    assert image.pretrain_spec().detection_gaps == 0.0
-    # None: no key, as every episode flown before the option.
-    assert "pretrain_gaps" not in TrackConfig(scenario, tmp_path).describe()
-    assert DeployConfig(scenario="case2", out=tmp_path, pretrain_gaps=0.3).pretrain_gaps == 0.3
-    auto = TrackConfig(scenario, tmp_path, pretrain_gaps="auto")
-    assert auto.describe()["pretrain_gaps"] == "auto"
-    for bad in (-0.1, 1.5, "often"):
-        with pytest.raises(ValueError, match="--pretrain-gaps: must be .auto. or in"):
-            TrackConfig(scenario, tmp_path, pretrain_gaps=bad)
-        with pytest.raises(ValueError, match="--pretrain-gaps: must be .auto. or in"):
-            DeployConfig(scenario="case2", out=tmp_path, pretrain_gaps=bad)
+    setting = Setting.load("recommended", ["pretraining.detection_gaps=0.3"])
+    for kind in ("dronefl", "centralized"):
+        assert resolve_gaps(PretrainSpec(scenario, setting, kind), tmp_path).detection_gaps == 0.3
+    image = PretrainSpec(scenario, setting, "image")
+    assert resolve_gaps(image, tmp_path).detection_gaps == 0.0

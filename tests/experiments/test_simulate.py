@@ -9,7 +9,7 @@ import pytest
 from dronefl.config import load_scenario
 from dronefl.experiments.simulate import simulate
 from dronefl.logs import GroundTruth, LogError, OnboardLog, load_run
-from dronefl.results import to_json
+from dronefl.serialize import to_json
 
 
 @pytest.fixture(scope="module")

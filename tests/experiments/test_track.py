@@ -8,20 +8,22 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+from quick_models import plant_quick_models
 
-from dronefl.cli import _as_flags
-from dronefl.config import load_scenario
-from dronefl.experiments.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
+from dronefl.config import load_scenario, parse_scenario
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
+from dronefl.experiments.prepare import prepare
 from dronefl.experiments.pretrain import PretrainSpec
-from dronefl.experiments.track import RECOMMENDED, TrackConfig, run_episode
-from dronefl.fl.checkpoint import load_checkpoint
+from dronefl.experiments.simulate import scenario_dict
+from dronefl.experiments.track import TrackConfig, run_episode
 from dronefl.learners import LearnerSetup
 from dronefl.learners.centralized import CentralizedLearner
 from dronefl.learners.federated import session_settings
 from dronefl.logs import LogError, PseudoLabels
 from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
+from dronefl.results.episode import EpisodeLog, EpisodeMetrics, tracking_metrics
+from dronefl.settings import Setting
 from dronefl.types import Detection, Odometry
 
 
@@ -61,8 +63,8 @@ def test_episode_metrics_by_hand():
 
 
 def test_metrics_written_before_the_sent_predictions_error_load_it_as_unknown():
-    from dronefl.experiments.episode import TrackingMetrics
-    from dronefl.results import from_json
+    from dronefl.results.episode import TrackingMetrics
+    from dronefl.serialize import from_json
 
     old = {"prediction_error": 1.0, "tracking_distance": 2.0, "uncertainty": 0.1,
            "speed_change": 0.2, "total_cost": 3.0, "prediction_coverage": 0.9,
@@ -166,21 +168,30 @@ def test_short_closed_loop_episode_keeps_every_target_tracked(quick_pretrained, 
     assert again.tracking == metrics.tracking
 
 
+def _lonely_case2():
+    """Case 2 with drone 3 the only one to watch target 3: with ``others`` it has no label."""
+    raw = scenario_dict(load_scenario("case2"))
+    raw["name"] = "case2-lonely"
+    raw["drones"][0]["targets"] = [1, 2]
+    raw["drones"][2]["targets"] = [3]
+    return parse_scenario(raw, source="test")
+
+
 @pytest.mark.slow
-def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained_case2, tmp_path):
-    pretrained = quick_pretrained_case2
-    case2 = PretrainSpec(load_scenario("case2"), "dronefl").settings(pretrained)
-    state = load_checkpoint(case2.checkpoint_path, case2.history_path, "dronefl").state
+def test_a_drone_without_a_label_keeps_its_model(quick_pretrained, tmp_path):
+    scenario = _lonely_case2()
+    pretrained = plant_quick_models(quick_pretrained, scenario, tmp_path / "pretrained")
+    setting = Setting.load("recommended", ["learning.period=20"])
     config = TrackConfig(
-        scenario=load_scenario("case2"), method="dronefl", seed=3, duration=24.0,
-        environment="crop_field", fl_period=20.0, epochs=1, label_drones="lower",
-        runtime="torch", pretrained=pretrained, out=tmp_path / "episode", progress=False,
-        animate=False,
+        scenario=scenario, setting=setting, method="dronefl", seed=3, duration=24.0,
+        environment="crop_field", runtime="torch", pretrained=pretrained,
+        out=tmp_path / "episode", progress=False, animate=False,
     )  # fmt: skip
+    state = prepare(scenario, setting, "dronefl", pretrained, progress=False).state
     metrics = run_episode(config)
 
-    # Drone 3 flies lowest (25 m): no label of its holds a lower view, so it sits out the
-    # round and keeps flying the pretrained model; drone 1 (45 m) learns from drones 2-3.
+    # Drone 3 alone watches target 3: no other drone's view, no label; it sits out the round
+    # and keeps flying the pretrained model, while drones 1 and 2 learn from each other.
     (only,) = metrics.fl_rounds
     assert 1 in only.train_loss and 3 not in only.train_loss
     assert "drone 3: no training examples" in only.rejected
@@ -191,150 +202,99 @@ def test_a_drone_with_no_lower_view_keeps_its_model(quick_pretrained_case2, tmp_
     assert not torch.equal(predictors[1]["embed.weight"], state["embed.weight"])
 
 
-def test_the_preset_sets_the_episode_models_and_their_updates(tmp_path):
+def test_the_setting_sets_the_episode_models_and_their_updates(tmp_path):
     case1 = load_scenario("case1")
-    ours, sgd = TrackConfig(case1, tmp_path), TrackConfig(case1, tmp_path, preset="metric-sgd")
+    ours = TrackConfig(case1, tmp_path)
+    paper = TrackConfig(case1, tmp_path, setting=Setting.load("paper"))
+    assert ours.setting == Setting.load("recommended")  # the Python default is the CLI's
+    assert ours.identity()["setting"] != paper.identity()["setting"]  # another episode
+    assert PretrainSpec(case1, ours.setting).model.box_size == "metric"
+    assert PretrainSpec(case1, paper.setting).model.box_size == "image"
+    with pytest.raises(ValueError, match="--method: 'nope'"):
+        TrackConfig(case1, tmp_path, method="nope")
 
-    # Unset E and lr are the preset's; given ones win.
-    assert (ours.epochs, ours.lr, sgd.epochs, sgd.lr) == (10, 1e-3, 10, 3e-4)
-    assert TrackConfig(case1, tmp_path, preset="metric-sgd", lr=1e-4).lr == 1e-4
-    assert sgd.settings()["preset"] == "metric-sgd"  # another preset is another episode
-    assert sgd.pretrain_spec().model.box_size == "metric"
-    assert ours.pretrain_spec() == PretrainSpec(case1, "dronefl", stride=2)
-    with pytest.raises(ValueError, match="--config: 'nope'"):
-        TrackConfig(case1, tmp_path, preset="nope")
-
-    # The online rounds train the preset's model with its batch and optimiser.
-    setup = LearnerSetup(tmp_path, {}, 10, 2, 3, 0, 1e-4, preset="metric-sgd")
+    # The online rounds train the setting's model with its batch and optimiser, E the
+    # learning's.
+    setup = LearnerSetup(tmp_path, {}, ours.setting, 0, (160.0, 120.0))
     rounds = session_settings(setup)
-    assert (rounds.epochs, rounds.lr, rounds.batch_size, rounds.optimizer) == (3, 1e-4, 64, "sgd")
+    assert (rounds.epochs, rounds.lr, rounds.batch_size, rounds.optimizer) == (1, 3e-4, 64, "sgd")
     assert (rounds.model, rounds.labels, rounds.train_fraction) == (
-        sgd.pretrain_spec().model,
+        PretrainSpec(case1, ours.setting).model,
         "tracks",
         1.0,
     )
-    large = PretrainSpec(case1, "centralized", preset="metric-sgd").model
+    large = PretrainSpec(case1, ours.setting, "centralized").model
     learner = CentralizedLearner(replace(setup, state=build_model(large).state_dict()))
     assert learner.settings.model == large and learner.settings.optimizer == "sgd"
 
 
-def test_the_demo_flies_the_recommended_setting_and_track_keeps_the_papers(
-    tmp_path, quick_pretrained_case2
-):
-    case2 = load_scenario("case2")
-    recommended = TrackConfig(case2, tmp_path, pretrained=quick_pretrained_case2, **RECOMMENDED)
-    assert (
-        recommended.preset,
-        recommended.label_drones,
-        recommended.epochs,
-        recommended.noise_split,
-        recommended.correct_bias,
-        recommended.detected_only,
-        recommended.planner_distance,
-        recommended.constant_speed_psd,
-    ) == ("metric-scaffold", "others", 1, "reported", True, True, "rest", 1e-3)
-    assert recommended.lr == 3e-4  # the preset's, as the README's Table I was flown
-    assert _as_flags(RECOMMENDED) == (  # what `dronefl demo` prints under its table
-        "--config metric-scaffold --label-drones others --epochs 1 --noise-split reported "
-        "--correct-bias --detected-only --planner-distance rest --constant-speed-psd 0.001 "
-        "--random-walk-track-psd 30.0 --temporal-kernel --pretrain-gaps auto"
-    )
-    assert recommended.planner_track_psd == 30.0  # Case 2's random walk: a second filter
-    assert recommended.track_fusion_config().temporal_kernel is not None
-    spec = recommended.pretrain_spec()  # the quick models' stand-in choice: no gaps
-    assert (spec.preset, recommended.pretrain_gaps, spec.detection_gaps) == (
-        "metric-scaffold",
-        "auto",
-        0.0,
-    )
-    default = TrackConfig(case2, tmp_path)  # the paper's online setting
-    assert (default.preset, default.label_drones, default.epochs) == ("ours", "all", 10)
-    assert default.noise_split == "adaptive" and not default.correct_bias
-    assert not default.detected_only and default.planner_distance == "next"
-    assert default.constant_speed_psd is None and default.fusion_config().acceleration_psd == 1.0
-
-
-def test_the_constant_speed_q_reaches_the_fusion_and_names_episodes_through_it(tmp_path):
-    case3 = TrackConfig(load_scenario("case3"), tmp_path, constant_speed_psd=1e-3)
-    assert case3.fusion_config().acceleration_psd == case3.track_fusion_config().acceleration_psd
-    assert case3.fusion_config().acceleration_psd == 1e-3
-    paper = replace(case3, constant_speed_psd=None)
-    assert paper.fusion_config().acceleration_psd == 0.1
-    assert "constant_speed_psd" not in case3.describe()  # its q is in fusion_config
-    assert case3.settings() != paper.settings()
-    case2 = replace(case3, scenario=load_scenario("case2"))  # random walk: the same episode
-    assert case2.settings() == replace(case2, constant_speed_psd=None).settings()
-    with pytest.raises(ValueError, match="--constant-speed-psd"):
-        replace(case3, constant_speed_psd=0.0)
-
-
-def test_the_planner_distance_is_a_setting_old_episodes_keep_without_it(tmp_path):
-    config = TrackConfig(load_scenario("case1"), tmp_path, planner_distance="rest")
-    assert config.planner_config().distance_at == "rest"
-    assert config.describe()["planner_distance"] == "rest"
-    paper = replace(config, planner_distance="next")
-    assert paper.planner_config().distance_at == "next"
-    assert "planner_distance" not in paper.describe()  # as every episode flown before it
-    with pytest.raises(ValueError, match="--planner-distance"):
-        replace(config, planner_distance="later")
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("duration", float("inf"), "--duration: must be between one step"),
+        ("duration", float("nan"), "--duration: must be between one step"),
+        ("duration", 0.001, "--duration: must be between one step"),
+        ("duration", 1e6, "--duration: must be between one step"),
+        ("seed", -2, "--seed: must be in"),
+        ("environment", "desert", "--env: 'desert' is not one of"),
+        ("detector", "radar", "--detector: 'radar' is not one of"),
+        ("method", "centralized-image", "needs --detector yolo|use --detector yolo"),
+    ],
+)
+def test_a_bad_episode_is_refused_naming_the_option(tmp_path, field, value, message):
+    with pytest.raises(ValueError, match=message):
+        TrackConfig(load_scenario("case1"), tmp_path, **{field: value})
 
 
 @pytest.mark.slow
-def test_a_second_filter_at_the_fusions_own_q_flies_the_one_filter_episode(
-    quick_pretrained_case2, tmp_path
-):
-    # Case 2's recommended setting flies the planner on a q = 10 filter; `--track-psd 1` (the
-    # fusion's own q) gives back the one-filter episode to the bit, the way to reproduce a
-    # recommended Case 2 figure flown before the second filter joined the setting.
-    one = TrackConfig(
-        scenario=load_scenario("case2"), method="fixed", seed=3, duration=12.0,
-        environment="crop_field", runtime="torch", pretrained=quick_pretrained_case2,
-        out=tmp_path / "one", progress=False, animate=False,
-    )  # fmt: skip
-    assert one.planner_track_psd is None and one.fusion_config().acceleration_psd == 1.0
+def test_one_filter_flies_without_a_planner_s_own(quick_pretrained_case2, tmp_path):
+    # Case 2's recommended setting flies the planner on a q = 30 filter; without it the
+    # planner flies on the fusion's own filter, and the tracks differ.
     logs = {}
-    for name, config in (
-        ("one", one),
-        ("own q", replace(one, track_psd=1.0, out=tmp_path / "own")),
-        ("q 10", replace(one, random_walk_track_psd=10.0, out=tmp_path / "fast")),
-    ):
+    for name, overrides in (("q 30", []), ("one", ["fusion.random_walk_planner_psd=none"])):
+        config = TrackConfig(
+            scenario=load_scenario("case2"), setting=Setting.load("recommended", overrides),
+            method="fixed", seed=3, duration=12.0, environment="crop_field", runtime="torch",
+            pretrained=quick_pretrained_case2, out=tmp_path / name, progress=False,
+            animate=False,
+        )  # fmt: skip
         run_episode(config)
         with np.load(config.out / "episode.npz") as episode:
             logs[name] = {key: episode[key] for key in episode.files}
-    for key, value in logs["one"].items():
-        np.testing.assert_array_equal(logs["own q"][key], value, err_msg=key)
-    assert not np.array_equal(logs["q 10"]["track_position"], logs["one"]["track_position"])
+        with (config.out / CHECKPOINT_NAME).open("rb") as handle:
+            saved = pickle.load(handle)
+        assert (saved.label_fuser is None) == (name == "one")
+    assert not np.array_equal(logs["q 30"]["track_position"], logs["one"]["track_position"])
+    np.testing.assert_array_equal(
+        logs["q 30"]["target_position"][:2], logs["one"]["target_position"][:2]
+    )
 
 
 @pytest.mark.slow
-def test_a_second_filter_flies_the_tracks_and_the_labels_keep_their_own(quick_pretrained, tmp_path):
+def test_a_second_filter_flies_the_tracks_and_the_labels_keep_their_own(
+    quick_pretrained_case2, tmp_path
+):
     config = TrackConfig(
-        scenario=load_scenario("case1"), method="fixed", seed=3, duration=12.0,
-        environment="crop_field", runtime="torch", pretrained=quick_pretrained, out=tmp_path,
-        progress=False, animate=False, track_psd=10.0,
+        scenario=load_scenario("case2"), method="fixed", seed=3, duration=12.0,
+        environment="crop_field", runtime="torch", pretrained=quick_pretrained_case2,
+        out=tmp_path, progress=False, animate=False,
     )  # fmt: skip
     run_episode(config)
 
     with (tmp_path / CHECKPOINT_NAME).open("rb") as handle:
         saved = pickle.load(handle)
     tracks, labels = saved.fuser, saved.label_fuser
-    # The planner's filter has q = 10; the labels' is the fusion's own, fed the same stream.
-    assert tracks.config == replace(config.fusion_config(), acceleration_psd=10.0)
-    assert labels.config == config.fusion_config() and labels.config.acceleration_psd != 10.0
+    # The planner's filter has q = 30; the labels' is the fusion's own, fed the same stream.
+    assert tracks.config.acceleration_psd == 30.0
+    assert labels.config.acceleration_psd == 1.0 and labels.config.motion == "mean_reverting"
     assert labels.measurements == tracks.measurements > 0
     with np.load(tmp_path / "episode.npz") as episode:
-        logged, trace = episode["track_position"], episode["trace"]
+        trace = episode["trace"]
     for j, target in enumerate(config.scenario.target_ids):
         mine, theirs = tracks.history(target), labels.history(target)
         np.testing.assert_array_equal(mine.t, theirs.t)
-        # The episode logs the planner's tracks: the last one is the q = 10 filter's.
-        np.testing.assert_allclose(logged[-1, j], mine.mean[-1, :2], rtol=0, atol=1e-12)
-        # ... and the Tr P of the fusion's own filter, which the planner weighs.
+        # The episode logs the Tr P of the fusion's own filter, which the planner weighs.
         own = np.trace(theirs.covariance[-1])
         assert trace[-1, j] == pytest.approx(own, rel=1e-12)
         assert abs(np.trace(mine.covariance[-1]) - own) > 1e-6
         assert np.abs(mine.mean[:, :2] - theirs.mean[:, :2]).max() > 1e-3
-    assert config.describe()["track_psd"] == 10.0
-    assert "track_psd" not in replace(config, track_psd=None).describe()  # old episodes reuse
-    with pytest.raises(ValueError, match="--track-psd"):
-        replace(config, track_psd=0.0)

@@ -20,9 +20,9 @@ from cli_child import run_cli
 from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
 
 DURATION = 21.0
-#: ``--setting ours``: every drone learns every label, so Case 1 (one drone per target) has rounds.
-TRACK = ["track", "--setting", "ours", "--scenario", "case1", "--duration", str(DURATION),
-         "--fl-period", "7", "--no-animate"]  # fmt: skip
+#: Every drone learns every label, so Case 1 (one drone per target) has rounds.
+TRACK = ["track", "--set", "learning.label_drones=all", "--scenario", "case1", "--duration",
+         str(DURATION), "--set", "learning.period=7", "--no-animate"]  # fmt: skip
 #: metrics.json fields that are wall-clock times (each FL round's ``seconds`` too).
 WALL_CLOCK = ("wall_seconds", "fl_seconds", "planner_ms_per_step")
 #: How much a round's message may differ in size from the uninterrupted run's, B: the engine
@@ -115,8 +115,8 @@ def test_episode_killed_mid_round_and_mid_checkpoint_resumes_bit_identical(
     # Another episode's results, or checkpoint: one line naming the file and the setting,
     # before any work.
     argv = [*TRACK, "--pretrained", str(quick_pretrained), "--out", str(out), "--resume"]
-    code, err = run_cli(capsys, *argv, "--fl-period", "15")
-    assert code == 2 and "metrics.json" in err and "fl_period is 7.0 there, 15.0 here" in err
+    code, err = run_cli(capsys, *argv, "--set", "learning.period=15")
+    assert code == 2 and "metrics.json" in err and "setting is" in err
     (out / "metrics.json").unlink()
     code, err = run_cli(capsys, *argv, "--seed", "1")
     assert code == 2 and CHECKPOINT_NAME in err and "seed is 0 there, 1 here" in err

@@ -19,12 +19,16 @@ from dronefl.experiments.track import TRACK_METHODS, LoopParts, TrackConfig, run
 from dronefl.fl.checkpoint import Checkpoint, save_checkpoint
 from dronefl.io import atomic_savez
 from dronefl.models.image import FrameTransformer
-from dronefl.models.model import build_model, count_parameters, predictor_config
+from dronefl.models.model import build_model, count_parameters
 from dronefl.perception import make_detector
+from dronefl.settings import Setting
 
-TRACK = ["track", "--setting", "ours", "--scenario", "case1", "--method", "centralized-image",
-         "--detector", "yolo", "--duration", "10", "--fl-period", "5", "--epochs", "1", "--env",
-         "crop_field", "--no-animate"]  # fmt: skip
+#: A model update at 5 s, every drone learning every label (Case 1: one drone per target).
+OVERRIDES = ["learning.period=5", "learning.label_drones=all"]
+SETTING = Setting.load("recommended", OVERRIDES)
+TRACK = ["track", "--scenario", "case1", "--method", "centralized-image", "--detector", "yolo",
+         "--duration", "10", "--env", "crop_field", "--no-animate",
+         *(a for o in OVERRIDES for a in ("--set", o))]  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -33,14 +37,15 @@ def vision_pretrained(quick_pretrained, tmp_path_factory):
     freshly initialised (their accuracy is not under test: pretraining them is slow)."""
     folder = shutil.copytree(quick_pretrained, tmp_path_factory.mktemp("vision") / "pretrained")
     scenario = load_scenario("case1")
-    settings = PretrainSpec(scenario, "centralized").settings(folder)
-    large = build_model(predictor_config("large", 10, 1), seed=0)
+    large_spec = PretrainSpec(scenario, SETTING, "centralized")  # the quick choice: no gaps
+    settings = large_spec.settings(folder)
+    large = build_model(large_spec.model, seed=0)
     save_checkpoint(
         settings.checkpoint_path,
         settings.history_path,
         Checkpoint("centralized", settings.rounds, large.state_dict(), []),
     )
-    image = PretrainSpec(scenario, "image")
+    image = PretrainSpec(scenario, SETTING, "image")
     torch.manual_seed(0)
     state = FrameTransformer(image.image_model).state_dict()
     atomic_savez(image.model_path(folder), **{k: v.numpy() for k, v in state.items()})
@@ -51,8 +56,8 @@ def vision_pretrained(quick_pretrained, tmp_path_factory):
 @pytest.mark.parametrize("method", TRACK_METHODS)
 def test_every_method_flies_a_vision_episode(vision_pretrained, tmp_path, method):
     config = TrackConfig(
-        scenario=load_scenario("case1"), method=method, detector="yolo", duration=10.0,
-        fl_period=5.0, epochs=1, environment="crop_field", runtime="torch",
+        scenario=load_scenario("case1"), setting=SETTING, method=method, detector="yolo",
+        duration=10.0, environment="crop_field", runtime="torch",
         pretrained=vision_pretrained, out=tmp_path, progress=False, animate=False,
     )  # fmt: skip
     built = []
@@ -71,12 +76,14 @@ def test_every_method_flies_a_vision_episode(vision_pretrained, tmp_path, method
     if method == "centralized-image":
         assert saved["model_input"] == "frames"
         assert saved["model_parameters"] == count_parameters(
-            FrameTransformer(PretrainSpec(config.scenario, "image").image_model)
+            FrameTransformer(PretrainSpec(config.scenario, SETTING, "image").image_model)
         )
         assert "no detector" in metrics.centralized_inputs
     else:
         assert saved["model_input"] == "boxes"
-        assert saved["model_parameters"] == count_parameters(build_model(config.predictor_model))
+        kind = "centralized" if method == "centralized" else "dronefl"
+        model = PretrainSpec(config.scenario, SETTING, kind).model
+        assert saved["model_parameters"] == count_parameters(build_model(model))
     if method.startswith("centralized"):
         # Per drone a 640x640 JPEG every 0.2 s (tens of kB) and 53 B of odometry up, the
         # controls down; no predictions travel (the cloud predicts).

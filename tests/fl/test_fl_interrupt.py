@@ -20,7 +20,18 @@ from flwr.server.superlink.fleet.vce.backend.raybackend import RayBackend
 from dronefl.fl.checkpoint import load_checkpoint
 from dronefl.fl.simulation import ENGINE_INTERRUPTED, _interruptible_backend
 
-TINY = ["--scenario", "case1", "--duration", "40", "--stride", "5", "--seeds", "3", "--epochs", "2"]
+TINY = [
+    "--scenario",
+    "case1",
+    "--duration",
+    "40",
+    "--stride",
+    "5",
+    "--seeds",
+    "3",
+    "--set",
+    "training.epochs=2",
+]
 #: Seconds the interrupted process may take to end (the grace for stuck threads is 5 s).
 EXIT_WITHIN_S = 30.0
 #: ``dronefl ARGV`` with Python's Ctrl-C handler installed: a process started with SIGINT

@@ -10,7 +10,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-TINY = ["--scenario", "case1", "--duration", "40", "--stride", "5", "--seeds", "3", "--epochs", "2"]
+TINY = [
+    "--scenario",
+    "case1",
+    "--duration",
+    "40",
+    "--stride",
+    "5",
+    "--seeds",
+    "3",
+    "--set",
+    "training.epochs=2",
+]
 #: Where the runs of seed 3 live in an fl-offline folder.
 SEED = "seed_3"
 

@@ -7,8 +7,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from dronefl.experiments.fl_offline import OfflineConfig, OfflineResults, run_fl_offline
+from dronefl.experiments.fl_offline import OfflineConfig, run_fl_offline
 from dronefl.fl.checkpoint import CheckpointError
+from dronefl.results.fl import OfflineResults
+from dronefl.settings import Setting
 
 
 @pytest.mark.slow
@@ -61,17 +63,23 @@ def test_resuming_reuses_a_finished_local_run(tmp_path):
 
 def test_resuming_refuses_a_folder_trained_with_other_settings(tmp_path):
     # A finished `local` run with 1 local epoch per round; resuming the same --out with
-    # --epochs 2 must neither report the old result as the new setting nor continue it.
-    config = OfflineConfig("case1", tmp_path, rounds=1, seeds=(1,), duration=60.0, stride=5,
-                           methods=("local",), progress=False, epochs=1)  # fmt: skip
+    # 2 epochs must neither report the old result as the new setting nor continue it.
+    one, two = (Setting.load("recommended", [f"training.epochs={e}"]) for e in (1, 2))
+    config = OfflineConfig("case1", tmp_path, one, rounds=1, seeds=(1,), duration=60.0,
+                           stride=5, methods=("local",), progress=False)  # fmt: skip
     first = run_fl_offline(config).methods["local"]
     folder = next(tmp_path.rglob("local/checkpoint.npz")).parent
     kept = {p.name: p.read_bytes() for p in folder.iterdir()}
+    results = (tmp_path / "results.json").read_bytes()
 
+    with pytest.raises(CheckpointError, match=r"results.json: results of another experiment"):
+        run_fl_offline(replace(config, resume=True, setting=two))
+    (tmp_path / "results.json").unlink()  # without them, the method's folder refuses
     with pytest.raises(CheckpointError, match=r"settings.json: .*epochs 1 there, 2 now"):
-        run_fl_offline(replace(config, resume=True, epochs=2))
+        run_fl_offline(replace(config, resume=True, setting=two))
 
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == kept  # nothing lost
+    (tmp_path / "results.json").write_bytes(results)
     again = run_fl_offline(replace(config, resume=True)).methods["local"]  # same: reused
     assert again.seeds[0].final_test_mse == first.seeds[0].final_test_mse
     raw = json.loads((folder / "result.json").read_text())

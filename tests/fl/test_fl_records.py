@@ -9,17 +9,18 @@ from flwr.app import ConfigRecord
 
 from dronefl.fl.checkpoint import Checkpoint, CheckpointError, load_checkpoint, save_checkpoint
 from dronefl.fl.records import (
-    PRESETS,
     ClientReport,
     FlSettings,
     RoundRecord,
     SettingsError,
     TrainInstructions,
     WeightLayout,
-    closed_loop_settings,
+    fl_settings,
+    online_settings,
     to_arrays,
     to_state,
 )
+from dronefl.settings import Setting
 
 
 def test_settings_survive_the_run_config():
@@ -111,20 +112,27 @@ def test_round_records_survive_json_and_name_a_bad_field():
         RoundRecord.from_json({"round": 1})
 
 
-def test_presets_set_the_training_and_the_adain_placement():
-    paper = PRESETS["paper"].apply(FlSettings("r", "o"))
-    assert (paper.epochs, paper.lr) == (10, 1e-3)
+def _trained(name: str, method: str = "dronefl", rounds: int = 50, *overrides: str):
+    setting = Setting.load(name, overrides)
+    return fl_settings(
+        setting, method, run_dir="r", out_dir="o", rounds=rounds, future_steps=5, stride=10,
+        seed=0, field_m=(160.0, 120.0),
+    )  # fmt: skip
+
+
+def test_a_setting_sets_the_training_and_the_adain_placement():
+    paper = _trained("paper")
+    assert (paper.epochs, paper.lr, paper.optimizer) == (10, 1e-3, "adam")
     assert paper.model.adain_sites == ("encoder",)
-    assert PRESETS["ours"].apply(FlSettings("r", "o")) == FlSettings("r", "o")
     assert (paper.model.box_size, paper.batch_size) == ("image", 128)
-    metric = PRESETS["metric"].apply(FlSettings("r", "o"))
-    assert (metric.model.box_size, metric.batch_size) == ("metric", 64)
-    # The FL baselines read boxes as the paper's do, whatever the preset.
-    assert replace(metric, method="fedavg").model.box_size == "image"
-    sgd = PRESETS["metric-sgd"].apply(FlSettings("r", "o"))
-    assert sgd.train_config(1, 1).optimizer == "sgd" and sgd.train_config(1, 1).lr == 3e-4
-    assert replace(sgd, optimizer="adam") == replace(metric, lr=3e-4)
-    assert metric.train_config(1, 1).optimizer == "adam"
+    ours = _trained("recommended")
+    assert (ours.model.box_size, ours.batch_size, ours.lr) == ("metric", 64, 3e-4)
+    assert ours.train_config(1, 1).optimizer == "sgd" and ours.drift_correction == "scaffold"
+    # The FL baselines read boxes as the paper's do, whatever the setting; SCAFFOLD corrects
+    # FedAvg-based federated methods only.
+    assert replace(ours, method="fedavg").model.box_size == "image"
+    assert _trained("recommended", "fedprox").drift_correction == "none"
+    assert _trained("recommended", "local").drift_correction == "none"
     with pytest.raises(SettingsError, match="optimizer"):
         FlSettings("r", "o", optimizer="rmsprop")
     with pytest.raises(SettingsError, match="box_size"):
@@ -134,41 +142,34 @@ def test_presets_set_the_training_and_the_adain_placement():
 
 
 def test_the_stepped_lr_drops_tenfold_in_the_last_fifth_of_the_rounds():
-    step = PRESETS["metric-scaffold-step"].apply(FlSettings("r", "o", rounds=50))
-    assert step == replace(PRESETS["metric-scaffold"].apply(FlSettings("r", "o")), lr_step_at=0.8)
+    step = _trained("recommended", "dronefl", 50, "training.lr_step_at=0.8")
     assert [step.train_config(r, 1).lr for r in (1, 40)] == [3e-4, 3e-4]
     assert [step.train_config(r, 2).lr for r in (41, 50)] == pytest.approx([3e-5, 3e-5])
-    # Pretraining's 20 rounds step after round 16; every method of the preset steps alike.
+    # Pretraining's 20 rounds step after round 16; every method of the setting steps alike.
     assert replace(step, rounds=20).lr_of(16) == 3e-4
     assert replace(step, rounds=20).lr_of(17) == pytest.approx(3e-5)
-    local = PRESETS["metric-scaffold-step"].apply(FlSettings("r", "o", method="local"))
+    local = _trained("recommended", "local", 50, "training.lr_step_at=0.8")
     assert local.lr_of(50) == pytest.approx(3e-5) and local.drift_correction == "none"
-    # A constant lr keeps the key of the folders trained before the step existed.
-    assert "lr_step_at" not in PRESETS["metric-scaffold"].apply(FlSettings("r", "o")).training_key()
     assert step.training_key()["lr_step_at"] == 0.8
     assert FlSettings.from_run_config(step.to_run_config()) == step
     with pytest.raises(SettingsError, match="lr-step-at: must be in"):
         FlSettings("r", "o", lr_step_at=0.0)
-    # Twice the lr, the same step: 6e-4 until round 40, 6e-5 after.
-    fast = PRESETS["metric-scaffold-step-lr6e-4"].apply(FlSettings("r", "o", rounds=50))
-    assert fast == replace(step, lr=6e-4)
-    assert [fast.lr_of(r) for r in (40, 41)] == pytest.approx([6e-4, 6e-5])
 
 
 def test_the_closed_loop_trains_every_online_round_at_one_lr():
-    settings = closed_loop_settings(
-        "metric-scaffold-step", "dronefl", past_steps=10, stride=2, epochs=1, lr=3e-4, seed=0
-    )
+    setting = Setting.load("recommended", ["training.lr_step_at=0.8"])
+    settings = online_settings(setting, "dronefl", 0, (160.0, 120.0))
     assert settings.lr_step_at == 1.0 and settings.lr_of(settings.rounds + 1) == 3e-4
+    assert (settings.epochs, settings.future_steps, settings.stride) == (1, 1, 2)
+    assert (settings.labels, settings.train_fraction) == ("tracks", 1.0)
 
 
 def test_detection_gaps_reach_local_training_and_key_only_the_runs_that_cut_them():
-    plain = PRESETS["metric-scaffold"].apply(FlSettings("r", "o"))
+    plain = _trained("recommended")
     gaps = replace(plain, detection_gaps=0.3)
     assert plain.train_config(1, 1).detection_gaps == 0.0
     assert gaps.train_config(4, 2).detection_gaps == 0.3
-    # No gaps keeps the key of the folders trained before they existed.
-    assert "detection_gaps" not in plain.training_key()
+    assert plain.training_key()["detection_gaps"] == 0.0
     assert gaps.training_key()["detection_gaps"] == 0.3
     assert FlSettings.from_run_config(gaps.to_run_config()) == gaps
     with pytest.raises(SettingsError, match="detection-gaps: must be in"):

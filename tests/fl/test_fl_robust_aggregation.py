@@ -6,7 +6,7 @@ import pytest
 import torch
 from flwr.app import Array, ArrayRecord, ConfigRecord, Message, RecordDict
 
-from dronefl.fl.faults import parse_faults
+from dronefl.fl.fault_list import parse_faults
 from dronefl.fl.methods import METHODS
 from dronefl.fl.records import ClientReport, FlSettings, SettingsError, to_arrays
 from dronefl.fl.strategies import make_strategy

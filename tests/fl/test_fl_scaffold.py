@@ -10,7 +10,7 @@ import torch
 
 from dronefl.fl.checkpoint import Checkpoint, load_checkpoint, save_checkpoint
 from dronefl.fl.client_app import _windows
-from dronefl.fl.records import CONTROL_KEY, PRESETS, FlSettings, SettingsError, WeightLayout
+from dronefl.fl.records import CONTROL_KEY, FlSettings, SettingsError, WeightLayout, fl_settings
 from dronefl.fl.simulation import run_federated
 from dronefl.models.model import build_model
 from dronefl.models.train import (
@@ -22,6 +22,7 @@ from dronefl.models.train import (
     train_local,
     updated_control_variate,
 )
+from dronefl.settings import Setting
 
 
 def test_the_correction_adds_c_minus_c_i_to_every_gradient():
@@ -70,11 +71,18 @@ def test_settings_refuse_scaffold_with_adam_or_fedprox(tmp_path):
         FlSettings("run", "out", method="fedprox", optimizer="sgd", drift_correction="scaffold")
     with pytest.raises(SettingsError, match="drift-correction: 'fedavgm' is not one of"):
         FlSettings("run", "out", drift_correction="fedavgm")
-    preset = PRESETS["metric-scaffold"]
-    assert preset.apply(FlSettings("run", "out", method="dronefl")).scaffold
+    setting = Setting.load("recommended")
+
+    def trained(method: str) -> FlSettings:
+        return fl_settings(
+            setting, method, run_dir="run", out_dir="out", rounds=1, future_steps=5, stride=5,
+            seed=0, field_m=(160.0, 120.0),
+        )  # fmt: skip
+
+    assert trained("dronefl").scaffold
     # Methods without FedAvg's local steps keep their own training.
     for method in ("fedprox", "centralized-small", "local"):
-        assert not preset.apply(FlSettings("run", "out", method=method)).scaffold
+        assert not trained(method).scaffold
 
 
 def test_the_control_variate_travels_beside_the_weights_and_is_checkpointed(tmp_path):
@@ -137,8 +145,11 @@ def _reference(settings: FlSettings, rounds: int, correct: bool = True) -> list[
 
 @pytest.mark.slow
 def test_scaffold_through_flower_equals_the_algorithm_and_resumes(case1_run, tmp_path):
-    base = FlSettings(str(case1_run), str(tmp_path), rounds=1, stride=5)
-    settings = replace(PRESETS["metric-scaffold"].apply(base), epochs=2)
+    settings = fl_settings(
+        Setting.load("recommended", ["training.epochs=2"]), "dronefl", run_dir=str(case1_run),
+        out_dir=str(tmp_path), rounds=1, future_steps=5, stride=5, seed=0,
+        field_m=(160.0, 120.0),
+    )  # fmt: skip
     assert settings.scaffold and settings.optimizer == "sgd"
     run_federated(settings)  # round 1, then the engine stops: a fresh context on resume
     history = run_federated(replace(settings, rounds=2, resume=True))

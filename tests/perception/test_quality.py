@@ -16,7 +16,7 @@ from dronefl.perception.quality import (
 )
 from dronefl.perception.training import DetectorSidecar, detector_sidecar
 from dronefl.perception.yolo import shipped_detector_path
-from dronefl.results import from_json, save_result
+from dronefl.serialize import from_json, save_result
 
 
 def _report(empty_bin_miss_rate: float = 0.1) -> DetectorReport:

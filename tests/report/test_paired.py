@@ -6,13 +6,9 @@ import pytest
 from typer.testing import CliRunner
 
 from dronefl.cli import app
-from dronefl.experiments.fl_offline import (
-    MethodResult,
-    OfflineResults,
-    SeedResult,
-    comparison_table,
-)
+from dronefl.experiments.fl_offline import comparison_table
 from dronefl.report.paired import paired_comparison, table1_comparison
+from dronefl.results.fl import MethodResult, OfflineResults, SeedResult
 
 
 def _method(name: str, per_seed: dict[int, dict[int, float]]) -> MethodResult:
@@ -54,7 +50,9 @@ def test_fewer_than_two_shared_seeds_or_other_drones_are_refused():
 
 def test_the_command_prints_the_table_and_names_a_missing_method(tmp_path):
     results = tmp_path / "results.json"
-    OfflineResults("case9", "ours", 1, 60.0, 5, 0.0, {"a": A, "b": B}).save(results)
+    OfflineResults("case9", "recommended", "0123456789ab", 1, 60.0, 5, {"a": A, "b": B}).save(
+        results
+    )
     runner = CliRunner()
 
     shown = runner.invoke(app, ["fl-compare", str(results), "a", "b"])
@@ -104,10 +102,12 @@ def test_table1_rows_pair_each_scenario_s_seeds(tmp_path):
 
 
 def test_fig5_s_table_pairs_dronefl_with_local_when_both_ran():
-    results = OfflineResults("case9", "ours", 1, 60.0, 5, 0.0, {"dronefl": A, "local": B})
+    results = OfflineResults(
+        "case9", "recommended", "0123456789ab", 1, 60.0, 5, {"dronefl": A, "local": B}
+    )
     table = comparison_table([results], ("dronefl", "local"))
 
     assert "case9: DroneFL against `local` per drone, paired over the seeds" in table
     assert "| 1 | 2.000 | 3.000 | 0.67 | -1.000 ± 0.577 | 2 of 3 seeds | 0.23 |" in table
-    alone = OfflineResults("case9", "ours", 1, 60.0, 5, 0.0, {"dronefl": A})
+    alone = OfflineResults("case9", "recommended", "0123456789ab", 1, 60.0, 5, {"dronefl": A})
     assert "paired" not in comparison_table([alone], ("dronefl",))

@@ -14,7 +14,7 @@ from dronefl.tracking import (
     make_labels,
     set_distances,
 )
-from dronefl.tracking.labels import deshrink_labels, drone_labels, estimate_pull, label_drones
+from dronefl.tracking.labels import drone_labels, label_drones
 
 DT = 0.2  # s
 
@@ -94,94 +94,41 @@ def test_ospa_and_gospa_by_hand():
 
 
 def test_label_drones_by_rule():
-    # Step 0: drones 1 (60 m) and 2 (40 m) see target 1; step 1: drone 1 alone; drone 3 (20 m)
-    # sees target 2 at both steps.
+    # Step 0: drones 1 and 2 see target 1; step 1: drone 1 alone; drone 3 sees target 2 at
+    # both steps.
     predicted = np.zeros((2, 3, 2), dtype=bool)
     predicted[0, :2, 0] = True
     predicted[1, 0, 0] = True
     predicted[:, 2, 1] = True
-    altitudes = [60.0, 40.0, 20.0]
-    assert label_drones(predicted, altitudes, "all").all()
-    others = label_drones(predicted, altitudes, "others")
+    assert label_drones(predicted, "all").all()
+    others = label_drones(predicted, "others")
     assert others[:, :, 0].tolist() == [[True, False], [True, False], [False, False]]
     assert not others[:, :, 1].any()  # drone 3 alone sees target 2
-    lower = label_drones(predicted, altitudes, "lower")
-    assert lower[:, :, 0].tolist() == [[True, False], [False, False], [False, False]]
-    assert not lower[:, :, 1].any()
-    # Drones that withhold undetected predictions (--detected-only): a drone watching the
+    # Drones that withhold undetected predictions (drone.detected_only): a drone watching the
     # target learns the steps another drone's prediction reached the cloud, its own or not.
     assigned = np.array([[True, False], [True, False], [True, True]])
-    watched = label_drones(predicted, altitudes, "others", assigned)
+    watched = label_drones(predicted, "others", assigned)
     assert watched[:, :, 0].tolist() == [[True, False], [True, True], [True, True]]
     assert not watched[:, :, 1].any()
     with pytest.raises(ValueError, match="assigned"):
-        label_drones(predicted, altitudes, "others", assigned[:2])
+        label_drones(predicted, "others", assigned[:2])
     with pytest.raises(ValueError, match="unknown rule"):
-        label_drones(predicted, altitudes, "best")
-    with pytest.raises(ValueError, match="altitudes"):
-        label_drones(predicted, altitudes[:2], "lower")
+        label_drones(predicted, "best")
 
 
 def test_drone_labels_follow_the_predictions_one_step_later():
-    # Drones 1 (40 m) and 2 (20 m), one target; the prediction stored at step t is of t + 1.
+    # Drones 1 and 2, one target; the prediction stored at step t is of t + 1.
     position = np.arange(8, dtype=float).reshape(4, 1, 2)  # labels of steps 0-3
     prediction = np.full((4, 2, 1, 2), np.nan)
     prediction[0, 0] = prediction[0, 1] = 1.0  # both predicted step 1
     prediction[1, 0] = 1.0  # drone 1 alone predicted step 2
     prediction[2, 1] = 1.0  # drone 2 alone predicted step 3
-    lower = drone_labels(position, prediction, [40.0, 20.0], "lower")
-    assert lower.shape == (2, 4, 1, 2)
-    np.testing.assert_array_equal(lower[0, 1], position[1])  # drone 1 with drone 2 below it
-    assert np.isnan(lower[0, [0, 2, 3]]).all() and np.isnan(lower[1]).all()
-    every = drone_labels(position, prediction, [40.0, 20.0], "all")
+    others = drone_labels(position, prediction, "others")
+    assert others.shape == (2, 4, 1, 2)
+    for i in (0, 1):  # each with the other's view of step 1 only
+        np.testing.assert_array_equal(others[i, 1], position[1])
+        assert np.isnan(others[i, [0, 2, 3]]).all()
+    every = drone_labels(position, prediction, "all")
     np.testing.assert_array_equal(every, np.broadcast_to(position, (2, 4, 1, 2)))
     with pytest.raises(ValueError, match="prediction"):
-        drone_labels(position, prediction[:, :, :0], [40.0, 20.0], "all")
-
-
-def _pulled(pull, n_steps=400, noise=0.3, seed=0):
-    """Three drones and two targets at random spots; each prediction is the target pulled a
-    fraction ``pull`` toward its drone, plus ``noise`` m of noise; a few are missing."""
-    rng = np.random.default_rng(seed)
-    target = rng.uniform(-20, 20, (n_steps, 1, 2, 2))  # (K, 1, N, 2)
-    drone = rng.uniform(-20, 20, (n_steps, 3, 2))  # (K, M, 2)
-    prediction = (
-        target - pull * (target - drone[:, :, None]) + rng.normal(0, noise, (n_steps, 3, 2, 2))
-    )
-    prediction[rng.random((n_steps, 3, 2)) < 0.2] = np.nan
-    return target, drone, prediction
-
-
-@pytest.mark.parametrize("pull", [0.0, 0.07, 0.2])
-def test_the_pull_is_measured_from_the_drones_disagreement(pull):
-    _, drone, prediction = _pulled(pull)
-    assert estimate_pull(prediction, drone) == pytest.approx(pull, abs=0.005)
-    unknown = drone.copy()
-    unknown[::3, 1] = np.nan  # steps without telemetry are left out, not NaN
-    assert estimate_pull(prediction, unknown) == pytest.approx(pull, abs=0.005)
-
-
-def test_the_pull_estimate_is_clipped_and_zero_without_a_pair():
-    _, drone, pushed = _pulled(-0.2)  # away from the drone
-    assert estimate_pull(pushed, drone) == 0.0
-    _, drone, prediction = _pulled(0.8)
-    assert estimate_pull(prediction, drone) == 0.5
-    assert estimate_pull(prediction[:, :1], drone[:, :1]) == 0.0  # one drone: no pair
-    with pytest.raises(ValueError, match="drone_position"):
-        estimate_pull(prediction, drone[:, :2])
-
-
-def test_deshrunk_labels_undo_the_pull_toward_each_drone():
-    # Drone i's label of step t is the target pulled toward where drone i was at t - 1.
-    target, drone, _ = _pulled(0.0)
-    where = drone[np.maximum(np.arange(len(drone)) - 1, 0)].transpose(1, 0, 2)[:, :, None]
-    labels = target[:, 0][None] - 0.1 * (target[:, 0][None] - where)  # (M, T, N, 2)
-    labels[0, :5] = np.nan  # no label: stays none
-    fixed = deshrink_labels(labels, drone, 0.1)
-    np.testing.assert_allclose(
-        fixed[:, 5:], np.broadcast_to(target[5:, 0], (3, len(drone) - 5, 2, 2))
-    )
-    assert np.isnan(fixed[0, :5]).all()
-    np.testing.assert_allclose(deshrink_labels(labels, drone, 0.0)[:, 5:], labels[:, 5:])
-    with pytest.raises(ValueError, match="pull"):
-        deshrink_labels(labels, drone, 1.0)
+        drone_labels(position, prediction[:, :, :0], "all")

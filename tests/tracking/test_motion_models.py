@@ -4,13 +4,15 @@ import numpy as np
 import pytest
 
 from dronefl.config import load_scenario
+from dronefl.settings import Setting
 from dronefl.tracking import (
     RANDOM_WALK_VELOCITY_TIME_CONSTANT,
     Fuser,
     FusionConfig,
     PositionMeasurement,
-    fusion_config,
+    cloud_fusion,
 )
+from dronefl.tracking.fusion import TEMPORAL_KERNEL
 from dronefl.tracking.models import ConstantVelocity, CoordinatedTurn, MeanRevertingVelocity
 
 
@@ -97,28 +99,43 @@ def test_a_coasting_mean_reverting_track_slows_down_and_a_constant_velocity_one_
     assert speeds["mean_reverting"] < 1e-3  # 2 s = 8 time constants: e^-8 of it is left
 
 
+def _filters(case: str, name: str = "recommended", **fusion):
+    setting = Setting.load(name).with_values(fusion=fusion) if fusion else Setting.load(name)
+    return cloud_fusion(setting.fusion, setting.drone.noise_reports, load_scenario(case))
+
+
 def test_the_closed_loop_tracks_random_walk_targets_with_a_forgetting_velocity():
     # Case 2's vehicles walk at random; Cases 1 and 3 drive at constant speed.
-    robust = fusion_config(load_scenario("case2"))
-    assert (robust.motion, robust.acceleration_psd) == ("mean_reverting", 1.0)
-    assert robust.velocity_time_constant == RANDOM_WALK_VELOCITY_TIME_CONSTANT
-    paper = fusion_config(load_scenario("case2"), "paper")  # the paper's EKF keeps CV
+    robust = _filters("case2")
+    assert (robust.fusion.motion, robust.fusion.acceleration_psd) == ("mean_reverting", 1.0)
+    assert robust.fusion.velocity_time_constant == RANDOM_WALK_VELOCITY_TIME_CONSTANT
+    paper = _filters("case2", "paper").fusion  # the paper's EKF keeps CV
     assert (paper.motion, paper.acceleration_psd) == ("constant_velocity", 1.0)
     for case in ("case1", "case3"):
-        config = fusion_config(load_scenario(case))
+        config = _filters(case, "paper").fusion
         assert (config.motion, config.acceleration_psd) == ("constant_velocity", 0.1)
 
 
 def test_the_constant_speed_q_acts_on_constant_speed_targets_only():
     for case in ("case1", "case3"):
         for method in ("robust", "paper"):
-            config = fusion_config(load_scenario(case), method, constant_speed_psd=1e-3)
+            config = _filters(case, "paper", method=method, constant_speed_psd=1e-3).fusion
             assert (config.motion, config.acceleration_psd) == ("constant_velocity", 1e-3)
-    case2 = load_scenario("case2")  # random walk: its own q, whatever is asked
-    assert fusion_config(case2, constant_speed_psd=1e-3) == fusion_config(case2)
-    for bad in (0.0, -1.0, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="--constant-speed-psd"):
-            fusion_config(case2, constant_speed_psd=bad)
+    # random walk: its own q, whatever is asked
+    assert _filters("case2", constant_speed_psd=1e-3) == _filters("case2", constant_speed_psd=0.1)
+
+
+def test_the_planners_filter_and_the_kernel_are_for_random_walk_targets_only():
+    case2 = _filters("case2")  # recommended: a second filter at q = 30, with the kernel
+    assert case2.planner.acceleration_psd == 30.0 and case2.tracks is case2.planner
+    assert case2.planner.temporal_kernel == TEMPORAL_KERNEL == case2.fusion.temporal_kernel
+    assert case2.fusion.noise_split == "reported"
+    one = _filters("case2", random_walk_planner_psd=None)
+    assert one.planner is None and one.tracks is one.fusion
+    for case in ("case1", "case3"):
+        filters = _filters(case)
+        assert filters.planner is None and filters.fusion.temporal_kernel is None
+    assert _filters("case2", "paper").fusion.noise_split == "adaptive"
 
 
 def _numerical_jacobian(model, x, dt, step=1e-6):

@@ -1,8 +1,6 @@
 """The drones' own noise reports: the forecast residual against the next detection, its
 ground back-projection, its causality, and the fusion sharing two drones' R by the reports."""
 
-import pickle
-
 import numpy as np
 import pytest
 
@@ -11,9 +9,7 @@ from dronefl.models.online import OnboardRecord
 from dronefl.sim.camera import PinholeCamera
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
 from dronefl.tracking.reports import (
-    REPORT_FLOOR,
     ForecastResidual,
-    NoiseReporter,
     box_ground_positions,
     detected_now,
     forecast_residual_reports,
@@ -49,35 +45,6 @@ def test_the_reported_noise_converges_to_prediction_plus_detection_noise():
     assert np.isnan(reports[0]).all()  # nothing to compare with yet
     final = reports[-1, 0, 0]
     assert final == pytest.approx(0.26 * np.eye(2), abs=0.026)
-
-
-def test_a_net_report_leaves_out_the_detections_own_noise():
-    # A target driving straight at 0.5 m/s; predictions N(0, 0.3^2) m per axis, detections
-    # N(0, 0.25^2) (a high drone's): the gross report is (0.09 + 0.0625) I, the projection
-    # noise from the detections' second differences 0.0625 I, the net report 0.09 I.
-    rng = np.random.default_rng(4)
-    n = 20000
-    truth = (0.5 * DT * np.arange(n + 1))[:, None] * np.array([1.0, 0.4])  # (n + 1, 2)
-    predictions = truth[1:] + rng.normal(0, 0.3, (n, 2))
-    detected = truth + rng.normal(0, 0.25, truth.shape)
-    residual, sharp = ForecastResidual(1, rate=0.002), ForecastResidual(1, rate=0.002)
-    for k in range(n):
-        for estimate in (residual, sharp):
-            estimate.observe(detected[k][None])
-        if k == 2:  # three detections: the projection noise is known from now on
-            assert np.isfinite(residual.projection_noise()).all()
-        residual.predicted(predictions[k][None])
-        sharp.predicted((truth[k + 1] + rng.normal(0, 0.01, 2))[None])
-    assert residual.noise()[0] == pytest.approx(0.1525 * np.eye(2), abs=0.016)
-    assert residual.projection_noise()[0] == pytest.approx(0.0625 * np.eye(2), abs=0.008)
-    assert residual.noise(net=True)[0] == pytest.approx(0.09 * np.eye(2), abs=0.012)
-    # A drone whose detections are noisier than its predictions reports the floor, not a
-    # negative noise.
-    assert np.linalg.eigvalsh(sharp.noise(net=True)[0]).min() == pytest.approx(REPORT_FLOOR)
-    # Before three consecutive detections the net report is the gross one.
-    _, gross = forecast_residual_reports(predictions[:3, None, None], [detected[:4, None]])
-    _, net = forecast_residual_reports(predictions[:3, None, None], [detected[:4, None]], net=True)
-    assert np.array_equal(net[:2], gross[:2], equal_nan=True) and np.isfinite(gross[1]).all()
 
 
 def test_a_report_uses_only_what_the_drone_knew_when_it_sent_it():
@@ -123,19 +90,6 @@ def test_the_bias_correction_removes_a_constant_offset_and_keeps_causality():
     unchanged, plain = forecast_residual_reports(raw, detected)
     assert np.array_equal(unchanged, raw)
     assert not np.allclose(plain[-1], reports[-1])
-
-
-def test_an_estimate_pickled_before_the_bias_was_kept_loads_with_a_zero_bias():
-    old = ForecastResidual(3)
-    for name in ("_b", "_v", "_seen"):  # the bias, the projection noise
-        del old.__dict__[name]
-    loaded = pickle.loads(pickle.dumps(old))
-    assert np.array_equal(loaded.bias(), np.zeros((3, 2)))
-    assert np.isnan(loaded.projection_noise()).all()
-    loaded.observe(np.zeros((3, 2)))  # and it goes on
-    reporter = NoiseReporter(load_scenario("case2"))
-    del reporter.__dict__["net"]
-    assert pickle.loads(pickle.dumps(reporter)).net is False  # gross reports, as flown
 
 
 def test_detected_now_reads_the_last_step_of_the_assigned_targets():

@@ -154,12 +154,13 @@ def test_the_tuned_constant_speed_q_follows_a_u_turn(radius):
     # radius; 2.5 m is 6x its centripetal acceleration). Two drones, 0.15 m white noise plus
     # an AR(1) error of 0.1 m (lag-1 correlation 0.9). The track never lags by more than a few
     # decimetres in the turn, is never reset, and over the whole path it beats q = 0.1.
-    from dronefl.tracking.fusion import TUNED_CONSTANT_SPEED_PSD
+    from dronefl.settings import Setting
 
+    tuned = Setting.load().fusion.constant_speed_psd
     truth = _u_turn(radius)
     turn = slice(200, 200 + int(np.pi * radius / (0.5 * DT)) + 50)  # the turn and 10 s after
     errors = {}
-    for q in (0.1, TUNED_CONSTANT_SPEED_PSD):
+    for q in (0.1, tuned):
         rng = np.random.default_rng(3)
         fuser, ar, sq = Fuser([1], [1, 2], FusionConfig(acceleration_psd=q)), np.zeros((2, 2)), []
         for k, z in enumerate(truth):
@@ -169,6 +170,6 @@ def test_the_tuned_constant_speed_q_follows_a_u_turn(radius):
             sq.append(np.sum((track[1].position - z) ** 2))
         errors[q] = np.array(sq[25:]), np.array(sq[turn])
         assert fuser.resets == 0
-    whole, in_turn = errors[TUNED_CONSTANT_SPEED_PSD]
+    whole, in_turn = errors[tuned]
     assert whole.mean() < 0.85 * errors[0.1][0].mean()
     assert in_turn.max() < 0.15  # m^2

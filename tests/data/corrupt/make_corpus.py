@@ -134,11 +134,11 @@ def results(folder: Path) -> None:
     method = {"model": "dronefl", "parameters": 10, "training": "federated", "per_seed": [seed]}
     head = {
         "scenario": "case1",
-        "config": "ours",
+        "setting": "recommended",
+        "setting_digest": "0123456789ab",
         "rounds": 2,
         "duration_s": 60.0,
         "stride": 10,
-        "proximal_mu": 0.01,
     }
     valid = json.dumps({**head, "methods": {"fedavg": method}})
     texts(folder, ".json", {

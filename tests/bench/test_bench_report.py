@@ -6,9 +6,7 @@ import pytest
 
 from dronefl.bench.energy import RPI5_INFERENCE, RPI5_TRAINING, RaplStatus
 from dronefl.bench.machine import LoadAverage, MachineInfo
-from dronefl.bench.results import BenchEnergy, Benchmarks, BenchResults, BenchSizes, CommFigure
-from dronefl.bench.timing import latency, with_reference
-from dronefl.report.bench import (
+from dronefl.bench.report import (
     GOALS,
     energy_estimates,
     evaluate_goals,
@@ -17,6 +15,8 @@ from dronefl.report.bench import (
     summary_line,
     table2,
 )
+from dronefl.bench.results import BenchEnergy, Benchmarks, BenchResults, BenchSizes, CommFigure
+from dronefl.bench.timing import latency, with_reference
 
 
 def _figures() -> Benchmarks:

@@ -19,8 +19,13 @@ import numpy as np
 from dronefl.accounting import Communication
 from dronefl.config import Scenario
 from dronefl.io import atomic_savez
-from dronefl.results import load_result, save_result
+from dronefl.serialize import load_result, save_result
 from dronefl.tracking.set_distances import SetDistances
+
+#: The file of a deployed episode with the noise reports the cloud received
+#: (``noise`` ``(K, M, N, 2, 2)`` m^2, NaN where none came; written by ``deploy up``, read by
+#: ``dronefl replay``).
+REPORTS_NAME = "reports.npz"
 
 
 def all_sent(prediction: np.ndarray) -> np.ndarray:
@@ -179,8 +184,7 @@ class ClosedLoopRound:
     """One model update of the closed loop: played at simulated time ``t`` (s), taking
     ``seconds`` of wall time; ``train_loss`` per drone (``0`` = the cloud) in m^2 (scaled
     MSE of the training windows); ``rejected`` the drones whose update was left out and why;
-    ``weight_bytes`` per drone, down and up; ``pull`` the predictions' pull toward their own
-    drone so far (:func:`dronefl.tracking.labels.estimate_pull`; ``None`` where not measured)."""
+    ``weight_bytes`` per drone, down and up."""
 
     round: int
     t: float
@@ -189,7 +193,6 @@ class ClosedLoopRound:
     rejected: tuple[str, ...] = ()
     weight_bytes_down: dict[int, int] = field(default_factory=dict)
     weight_bytes_up: dict[int, int] = field(default_factory=dict)
-    pull: float | None = None
 
 
 @dataclass(frozen=True)

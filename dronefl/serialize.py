@@ -26,9 +26,9 @@ from dronefl.io import atomic_write_json
 
 T = TypeVar("T")
 #: Field metadata key of :func:`omitted_when_none`.
-_OMIT_NONE = "dronefl.results.omit_none"
+_OMIT_NONE = "dronefl.serialize.omit_none"
 #: Field metadata key of :func:`json_key`.
-_JSON_KEY = "dronefl.results.json_key"
+_JSON_KEY = "dronefl.serialize.json_key"
 
 
 class ResultError(ValueError):
