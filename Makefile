@@ -27,6 +27,7 @@ test: install lint
 lint: install
 	$(BIN)/ruff check dronefl tests benchmarks examples
 	$(BIN)/ruff format --check dronefl tests benchmarks examples
+	$(BIN)/lint-imports --no-cache
 
 format: install
 	$(BIN)/ruff format dronefl tests benchmarks examples

@@ -7,7 +7,7 @@ from collections.abc import Collection
 
 
 def check_one_of(value: object, choices: Collection[str], option: str) -> None:
-    """Raise ``ValueError`` naming ``option`` (as the user wrote it, e.g. ``--noise-split``)
+    """Raise ``ValueError`` naming ``option`` (as the user wrote it, e.g. ``--method``)
     unless ``value`` is one of ``choices`` (a tuple, or a registry dict's keys)."""
     if value not in choices:
         raise ValueError(f"{option}: {value!r} is not one of {', '.join(choices)}")

@@ -39,8 +39,6 @@ GLOBAL_MODEL = "global.npz"
 #: Names of the round number and of the architecture (JSON) inside a model file.
 _ROUND = "__server_round__"
 _MODEL = "__model__"
-#: The architecture of model files written before they recorded theirs (all held ``ours``).
-_UNRECORDED = PredictorConfig(past_steps=10, future_steps=1)
 
 app = ClientApp()
 
@@ -60,7 +58,7 @@ def save_model(
 ) -> None:
     """Write model weights (after ``server_round``; 0: pretrained) and their architecture
     ``model`` atomically to ``path``: the file alone says how to build the predictor (a
-    preset's box reading changes the model, not the shapes of its weights)."""
+    setting's box reading changes the model, not the shapes of its weights)."""
     arrays = {k: v.detach().cpu().numpy() for k, v in state.items()}
     atomic_savez(
         path, **{_ROUND: np.array(server_round), _MODEL: np.array(model.to_json())}, **arrays
@@ -68,13 +66,13 @@ def save_model(
 
 
 def load_model(path: Path) -> SavedModel:
-    """The content of a file written by :func:`save_model` (a file written before files
-    recorded their architecture holds the ``ours`` model, L_p = 10, L_f = 1)."""
+    """The content of a file written by :func:`save_model`; ``FileNotFoundError`` naming the
+    file when it is missing, corrupt or records no architecture."""
     try:
         with np.load(path, allow_pickle=False) as npz:
             names = [k for k in npz.files if k not in (_ROUND, _MODEL)]
             state = {k: torch.from_numpy(npz[k].copy()) for k in names}
-            model = PredictorConfig.from_json(str(npz[_MODEL])) if _MODEL in npz else _UNRECORDED
+            model = PredictorConfig.from_json(str(npz[_MODEL]))
             return SavedModel(state, int(npz[_ROUND]), model)
     except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
         raise FileNotFoundError(f"{path}: missing or corrupt model file ({exc})") from None

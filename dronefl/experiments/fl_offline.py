@@ -201,8 +201,8 @@ def _settings_file(settings: FlSettings) -> Path:
 def _claim(settings: FlSettings) -> None:
     """Record the settings ``settings.out_dir`` trains with; resuming, first refuse a folder
     that recorded other ones, so that a checkpoint or result of another setting (say another
-    ``--epochs`` into the same ``--out``) is never continued or reported as this one. A
-    folder from before settings were recorded keeps only the config and rounds check."""
+    ``training.epochs`` into the same ``--out``) is never continued or reported as this one. A
+    folder without recorded settings keeps only the setting and rounds check."""
     path = _settings_file(settings)
     if settings.resume and path.is_file():
         try:

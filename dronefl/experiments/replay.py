@@ -435,7 +435,7 @@ def episode_records(episode: Episode) -> list:
 
 def withhold_undetected(episode: Episode, records: list | None = None) -> Episode:
     """``episode`` with only the predictions made while the drone detected the target marked
-    sent, as ``track --detected-only`` sends them (from ``records``, default: those in
+    sent, as a drone with ``drone.detected_only`` sends them (from ``records``, default: those in
     ``checkpoint.pkl``, :func:`episode_records`)."""
     steps = len(episode.prediction)
     records = episode_records(episode) if records is None else records

@@ -24,7 +24,7 @@ from dronefl.models.online import OnboardRecord
 
 def session_settings(setup: LearnerSetup) -> FlSettings:
     """The Flower settings of an episode's online rounds: the DroneFL model of the setup's
-    preset, L_f = 1, the fused tracks as labels, every recorded window trained on (no test
+    setting, L_f = 1, the fused tracks as labels, every recorded window trained on (no test
     split, no federated evaluation)."""
     return setup.fl_settings(
         "dronefl", str(setup.out / "fl" / "round_01"), str(setup.out / "fl" / "global")

@@ -27,7 +27,7 @@ federated model ended 100x worse than the same model on pooled data). Two AdaIN 
 * ``encoder``: Eq. 6 as SPEC §4 states it, statistics over time, as a residual branch after
   each encoder layer (``x <- x + AdaIN_h(x)``: normalising the residual stream itself would
   erase each window's mean, which says where the target is), starting as plain
-  normalisation. It alone does not help (the paper preset keeps only it); with the head site
+  normalisation. It alone does not help (the paper setting keeps only it); with the head site
   it does a little (docs/fl.md).
 
 Box sizes. A vehicle of ground size s m seen from altitude h fills ``s / footprint(h)`` of the

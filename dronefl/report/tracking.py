@@ -86,7 +86,7 @@ def _timeseries(scenario, log, path: Path, method: str) -> None:
         if log_scale:
             ax.set_yscale("log")
     made = np.isfinite(errors)
-    if (made & ~log.sent).any():  # --detected-only: the error of what reached the cloud too
+    if (made & ~log.sent).any():  # drone.detected_only: the error of what reached the cloud too
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             sent_error = np.nanmean(np.where(log.sent, errors, np.nan), axis=(1, 2))

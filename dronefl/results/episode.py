@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import math
 import zipfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -67,12 +66,6 @@ class EpisodeLog:
         if self.sent is None:
             self.sent = all_sent(self.prediction)
 
-    def __setstate__(self, state: dict) -> None:
-        """Unpickle, also a log saved before ``sent`` existed (every prediction was sent)."""
-        if state.get("sent") is None:
-            state["sent"] = all_sent(state["prediction"])
-        self.__dict__.update(state)
-
     def sent_predictions(self) -> np.ndarray:
         """The predictions as the cloud received them, ``(K, M, N, 2)`` m, NaN where none
         was sent."""
@@ -101,10 +94,10 @@ class EpisodeLog:
 
     @classmethod
     def load(cls, path: Path) -> EpisodeLog:
-        """Read a :meth:`save` file (one written before ``sent`` existed too); ``OSError`` for
-        a missing or unreadable file, ``ValueError`` naming it for a corrupt or foreign one."""
+        """Read a :meth:`save` file; ``OSError`` for a missing or unreadable file,
+        ``ValueError`` naming it for a corrupt or foreign one."""
         try:
-            with np.load(path) as data:
+            with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in data.files}
         except (ValueError, EOFError, zipfile.BadZipFile) as exc:
             raise ValueError(f"{path}: not a readable episode log ({exc})") from None
@@ -129,8 +122,7 @@ class TrackingMetrics:
     * ``tracking_error`` (m^2): mean squared error of the fused tracks;
     * ``sent_prediction_error`` (m^2): ``prediction_error`` over the predictions the drones
       sent to the cloud, the only ones the fusion sees (every prediction made, unless
-      ``--detected-only`` withholds those of targets out of view); NaN in results written
-      before it was measured (2026-12-06).
+      ``drone.detected_only`` withholds those of targets out of view).
     """
 
     prediction_error: float
@@ -140,7 +132,7 @@ class TrackingMetrics:
     total_cost: float
     prediction_coverage: float
     tracking_error: float
-    sent_prediction_error: float = math.nan
+    sent_prediction_error: float
 
 
 def tracking_metrics(log: EpisodeLog, scenario: Scenario) -> TrackingMetrics:
@@ -205,8 +197,8 @@ class EpisodeMetrics:
     ``gating_rejections`` and ``track_resets`` counts of the fusion; ``centralized_inputs`` says in
     words what the centralized baseline's drones sent (``None`` for the other methods); ``config``
     the episode's settings as given; ``model_input`` what the method's model reads (``boxes`` or
-    ``frames``) and ``model_parameters`` its trainable parameters (``None``: not recorded, as in
-    episodes written before 2026-12-05 and the deployment's)."""
+    ``frames``) and ``model_parameters`` its trainable parameters (``None``: not recorded, as by
+    a deployment)."""
 
     scenario: str
     scenario_hash: str

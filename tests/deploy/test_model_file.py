@@ -55,7 +55,7 @@ def test_the_drone_flies_the_architecture_in_the_file(tmp_path):
         load_predictor(tmp_path / "m20.npz", past_steps=20)
 
 
-def test_a_file_without_an_architecture_record_holds_the_default_model(tmp_path):
+def test_a_file_without_an_architecture_record_is_refused(tmp_path):
     config = predictor_config("dronefl", 10, 1)
     state = build_model(config).state_dict()
     np.savez(
@@ -63,4 +63,5 @@ def test_a_file_without_an_architecture_record_holds_the_default_model(tmp_path)
         __server_round__=np.array(0),
         **{k: v.numpy() for k, v in state.items()},
     )
-    assert load_model(tmp_path / "old.npz").model == config
+    with pytest.raises(FileNotFoundError, match="old.npz: missing or corrupt model file"):
+        load_model(tmp_path / "old.npz")

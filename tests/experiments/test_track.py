@@ -56,34 +56,19 @@ def test_episode_metrics_by_hand():
     assert np.isnan(metrics.sent_prediction_error)  # none was marked sent
     log.sent[0, 0, 0] = log.sent[1, 1, 1] = log.sent[1, 0, 1] = True
     assert tracking_metrics(log, scenario).sent_prediction_error == pytest.approx(5.0)
-    log.sent[0, 0, 0] = False  # withheld (--detected-only): still made, not sent
+    log.sent[0, 0, 0] = False  # withheld (drone.detected_only): still made, not sent
     withheld = tracking_metrics(log, scenario)
     assert withheld.prediction_error == pytest.approx(5.0)
     assert withheld.sent_prediction_error == pytest.approx(9.0)
 
 
-def test_metrics_written_before_the_sent_predictions_error_load_it_as_unknown():
-    from dronefl.results.episode import TrackingMetrics
-    from dronefl.serialize import from_json
-
-    old = {"prediction_error": 1.0, "tracking_distance": 2.0, "uncertainty": 0.1,
-           "speed_change": 0.2, "total_cost": 3.0, "prediction_coverage": 0.9,
-           "tracking_error": 0.5}  # fmt: skip
-    assert np.isnan(from_json(TrackingMetrics, old).sent_prediction_error)
-
-
-def test_a_log_says_which_predictions_were_sent_also_one_pickled_before():
+def test_a_log_says_which_predictions_were_sent():
     log = EpisodeLog.empty(load_scenario("case1"), 3)
     log.prediction[0, 0, 0] = log.prediction[1, 1, 1] = (1.0, 2.0)
-    log.sent[1, 1, 1] = True  # the first was made but withheld (--detected-only)
+    log.sent[1, 1, 1] = True  # the first was made but withheld (drone.detected_only)
     received = log.sent_predictions()
     assert np.isnan(received[0, 0, 0]).all() and received[1, 1, 1].tolist() == [1.0, 2.0]
     assert tracking_metrics(log, load_scenario("case1")).prediction_coverage == 2 / 6
-    # A log pickled before `sent` existed sent every prediction it holds.
-    old = pickle.loads(pickle.dumps(log))
-    del old.__dict__["sent"]
-    loaded = pickle.loads(pickle.dumps(old))
-    assert loaded.sent[0, 0, 0] and loaded.sent[1, 1, 1] and loaded.sent.sum() == 2
 
 
 def test_onboard_record_windows_and_log():
