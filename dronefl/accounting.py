@@ -90,6 +90,14 @@ class ByteCounter:
             and (kind is None or k == kind)
         )
 
+    def state(self) -> dict[tuple[int, str, str], int]:
+        """Every count so far, for an episode checkpoint."""
+        return dict(self._bytes)
+
+    def restore(self, state: dict[tuple[int, str, str], int]) -> None:
+        """Continue counting from ``state`` (:meth:`state`)."""
+        self._bytes = defaultdict(int, {tuple(k): int(n) for k, n in state.items()})
+
     def rates(self, seconds: float) -> Communication:
         """Every counted (drone, direction, kind) as KB/s over ``seconds`` of simulated time."""
         if not seconds > 0:

@@ -93,3 +93,73 @@ def atomic_savez(path: str | Path, **arrays: np.ndarray) -> Path:
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
     return atomic_write_bytes(path, buffer.getvalue())
+
+
+#: The key of a state file's structure (JSON) among its arrays.
+_TREE = "__tree__"
+
+
+class StateFileError(ValueError):
+    """A state file that is missing, truncated, corrupt or not a state file (names it)."""
+
+
+def save_state(path: str | Path, tree: Any) -> Path:
+    """Write ``tree`` atomically as a state file: ``.npz`` with every array of the tree and its
+    structure as JSON, readable with ``allow_pickle=False`` (nothing in it can run code).
+
+    ``tree`` is made of dicts (any hashable keys of the kinds below), lists, tuples, ``None``,
+    bools, ints, floats (non-finite too), strings and numpy arrays (numpy scalars are stored as
+    Python numbers); anything else is a ``TypeError``. :func:`load_state` gives it back equal,
+    tuples as tuples and every float to the bit."""
+    arrays: dict[str, np.ndarray] = {}
+    text = json.dumps(_encode(tree, arrays), allow_nan=True)
+    return atomic_savez(path, **{_TREE: np.array(text)}, **arrays)
+
+
+def load_state(path: str | Path) -> Any:
+    """The tree a :func:`save_state` file holds; :class:`StateFileError` naming the file when
+    it is not one."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+        tree = json.loads(str(arrays.pop(_TREE)))
+        return _decode(tree, arrays)
+    except FileNotFoundError:
+        raise StateFileError(f"{path}: not found") from None
+    except Exception as exc:  # a damaged zip or JSON raises its own errors: all mean corrupt
+        raise StateFileError(
+            f"{path}: truncated or corrupt state file ({type(exc).__name__})"
+        ) from None
+
+
+def _encode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
+    if isinstance(value, np.ndarray):
+        if value.dtype == object:
+            raise TypeError("save_state: arrays of Python objects cannot be stored")
+        key = f"a{len(arrays)}"
+        arrays[key] = value
+        return {"__array__": key}
+    if isinstance(value, np.generic):
+        return value.item()
+    if value is None or isinstance(value, bool | int | float | str):
+        return value
+    if isinstance(value, tuple):
+        return {"__tuple__": [_encode(v, arrays) for v in value]}
+    if isinstance(value, list):
+        return [_encode(v, arrays) for v in value]
+    if isinstance(value, dict):
+        return {"__dict__": [[_encode(k, arrays), _encode(v, arrays)] for k, v in value.items()]}
+    raise TypeError(f"save_state: cannot store a {type(value).__name__}")
+
+
+def _decode(value: Any, arrays: dict[str, np.ndarray]) -> Any:
+    if isinstance(value, list):
+        return [_decode(v, arrays) for v in value]
+    if not isinstance(value, dict):
+        return value
+    if "__array__" in value:
+        return arrays[value["__array__"]]
+    if "__tuple__" in value:
+        return tuple(_decode(v, arrays) for v in value["__tuple__"])
+    return {_decode(k, arrays): _decode(v, arrays) for k, v in value["__dict__"]}

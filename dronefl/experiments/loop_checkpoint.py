@@ -2,53 +2,38 @@
 (SPEC §10).
 
 After every FL period (whether or not the method updated its models then) and after the last
-step, the episode writes ``<out>/checkpoint.pkl`` atomically and fsynced
-(:func:`dronefl.io.atomic_write_bytes`; crash point ``write:checkpoint.pkl``), so a killed
-episode loses at most the period in progress. A :class:`LoopCheckpoint` holds the step to go on
-from and every part's state at that step:
-
-* as they are (plain Python and numpy objects, pickled): the world (vehicles, drones, their
-  random generators, the clock), the fuser (every track, each pair's adaptive ``R``, the
-  recorded forward pass that the pseudo-labels are smoothed from, its counters), every drone's
-  onboard record, the episode log, the byte counter, the FL rounds so far and, with reported
-  noise (:mod:`dronefl.tracking.reports`), every drone's running estimate;
-* through each part's ``state()`` (the parts that hold runtime objects, which a resumed episode
-  builds anew): the detector's (its random generator; an ONNX session or renderer is rebuilt),
-  the planner's, the learner's (weights and round history; the Flower driver is the new
-  session's) and each drone's on-board predictor weights (its ONNX session is compiled
-  from them).
+step, the episode writes ``<out>/resume.npz`` atomically and fsynced
+(:func:`dronefl.io.save_state`; crash point ``write:resume.npz``), so a killed episode
+loses at most the period in progress. A :class:`LoopCheckpoint` holds the step to go on from
+and every part's state at that step, each as its ``state()`` gives it (numpy arrays and plain
+values): the world (vehicles, drones, their random generators, the clock), the cloud's
+filters (every track, each pair's adaptive ``R``, the recorded forward pass the pseudo-labels
+are smoothed from, the counters), every drone's onboard record and noise reporter, the
+episode log, the byte counter, the FL rounds so far, the detector's, the planner's and the
+learner's state (weights and round history; the Flower driver is the new session's) and each
+drone's on-board predictor weights. A resumed episode builds every part anew from its config
+and restores these states into them: the file is data (``.npz`` read with
+``allow_pickle=False``), nothing in it can run code or choose what is built.
 
 A resumed episode's numbers equal an uninterrupted one's bit for bit, except the wall-clock
 timings (``wall_seconds``, ``fl_seconds``, ``planner_ms_per_step``, each round's ``seconds``):
 they add up the time the processes spent on the steps and rounds that were kept, and the time
 of one process differs from another's. As between any two runs, a Flower message's size varies
 by a few bytes with the random node ids of the engine.
-
-A checkpoint is a pickle, which runs code when loaded: it is the episode's own file in its
-``--out`` folder and is never to be loaded from elsewhere.
 """
 
 from __future__ import annotations
 
-import pickle
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from pathlib import Path
 
-import torch
-
-from dronefl.accounting import ByteCounter
 from dronefl.fl.checkpoint import CheckpointError
-from dronefl.io import atomic_write_bytes
-from dronefl.models.online import OnboardRecord
-from dronefl.results.episode import ClosedLoopRound, EpisodeLog
-from dronefl.sim.world import World
-from dronefl.tracking import Fuser
-from dronefl.tracking.reports import NoiseReporter
+from dronefl.io import StateFileError, load_state, save_state
 
 #: The checkpoint's file name in the episode folder.
-CHECKPOINT_NAME = "checkpoint.pkl"
+CHECKPOINT_NAME = "resume.npz"
 #: Written into every checkpoint; a file of another format version is refused.
-CHECKPOINT_FORMAT = "dronefl.loop_checkpoint/3"
+CHECKPOINT_FORMAT = "dronefl.loop_checkpoint/4"
 
 
 @dataclass(frozen=True)
@@ -57,37 +42,54 @@ class LoopCheckpoint:
 
     ``identity`` is the episode's (:meth:`TrackConfig.identity
     <dronefl.experiments.track.TrackConfig.identity>`), to refuse resuming another episode.
-    ``fuser`` and ``label_fuser`` are the cloud's filters (``label_fuser`` ``None`` with one
-    filter); ``records`` and ``reporters`` each drone's onboard record and noise reporter
-    (``None`` where it has none); ``detector``, ``planner`` and ``learner`` those parts'
-    ``state()``; ``predictors`` each drone's on-board predictor weights. ``planner_seconds``,
-    ``fl_seconds`` and ``wall_seconds`` are the wall time (s) spent so far planning, updating
-    models and in all, over every process that ran the episode.
+    Every other field is a part's ``state()``: the ``world``'s, the cloud's ``fuser`` and
+    ``label_fuser`` (``None`` with one filter), each drone's ``records`` and ``reporters``
+    (``None`` where it has none), the episode ``log`` (its arrays and FL steps), the byte
+    ``counter``, the ``rounds`` (``metrics.json``'s entries), the ``detector``'s, the
+    ``planner``'s and the ``learner``'s, and ``predictors``: each drone's on-board predictor
+    weights. ``planner_seconds``, ``fl_seconds`` and ``wall_seconds`` are the wall time (s)
+    spent so far planning, updating models and in all, over every process that ran the
+    episode.
     """
 
-    identity: dict[str, str | int | float]
+    identity: dict
     step: int
-    world: World
-    fuser: Fuser
-    label_fuser: Fuser | None
-    records: list[OnboardRecord]
-    reporters: list[NoiseReporter | None]
-    log: EpisodeLog
-    counter: ByteCounter
-    rounds: list[ClosedLoopRound]
+    world: dict
+    fuser: dict
+    label_fuser: dict | None
+    records: list
+    reporters: list
+    log: dict
+    counter: dict
+    rounds: list
     detector: object
     planner: object
     learner: object
-    predictors: dict[int, dict[str, torch.Tensor]]
+    predictors: dict
     planner_seconds: float
     fl_seconds: float
     wall_seconds: float
-    format: str = CHECKPOINT_FORMAT
 
 
 def save_loop_checkpoint(path: Path, checkpoint: LoopCheckpoint) -> Path:
     """Write ``checkpoint`` to ``path`` atomically (a kill leaves the previous one whole)."""
-    return atomic_write_bytes(path, pickle.dumps(checkpoint, protocol=pickle.HIGHEST_PROTOCOL))
+    tree = {f.name: getattr(checkpoint, f.name) for f in fields(checkpoint)}
+    return save_state(path, {"format": CHECKPOINT_FORMAT, **tree})
+
+
+def read_loop_checkpoint(path: Path) -> LoopCheckpoint:
+    """The checkpoint at ``path``, whatever episode it is of; :class:`CheckpointError` naming
+    the file when it is missing, corrupt or of another format version."""
+    try:
+        tree = load_state(path)
+    except StateFileError as exc:
+        raise CheckpointError(str(exc)) from None
+    if not isinstance(tree, dict) or tree.pop("format", None) != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} episode checkpoint")
+    try:
+        return LoopCheckpoint(**tree)
+    except TypeError:
+        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} episode checkpoint") from None
 
 
 def load_loop_checkpoint(
@@ -99,15 +101,7 @@ def load_loop_checkpoint(
     path = Path(path)
     if not path.is_file():
         return None
-    try:
-        with path.open("rb") as handle:
-            checkpoint = pickle.load(handle)
-    except Exception as exc:  # unpickling damaged bytes can raise almost any exception type
-        raise CheckpointError(
-            f"{path}: truncated or corrupt episode checkpoint ({type(exc).__name__})"
-        ) from None
-    if not isinstance(checkpoint, LoopCheckpoint) or checkpoint.format != CHECKPOINT_FORMAT:
-        raise CheckpointError(f"{path}: not a {CHECKPOINT_FORMAT} episode checkpoint")
+    checkpoint = read_loop_checkpoint(path)
     check_same_episode(path, checkpoint.identity, identity)
     return checkpoint
 

@@ -24,7 +24,6 @@ them, which are used as they are (the drones' onboard records stay on the drones
 from __future__ import annotations
 
 import json
-import pickle
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
@@ -32,7 +31,10 @@ from pathlib import Path
 import numpy as np
 
 from dronefl.config import Scenario, load_scenario
+from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, read_loop_checkpoint
+from dronefl.fl.checkpoint import CheckpointError
 from dronefl.io import atomic_write_json, atomic_write_text
+from dronefl.models.online import OnboardRecord
 from dronefl.results.episode import REPORTS_NAME, all_sent, received_predictions
 from dronefl.settings import Setting, SettingError
 from dronefl.tracking import Fuser, PositionMeasurement
@@ -413,30 +415,40 @@ class ReplayResult:
         return self.rejections / max(self.measurements, 1)
 
 
-def episode_records(episode: Episode) -> list:
-    """The drones' onboard records (:class:`~dronefl.models.online.OnboardRecord`, boxes,
-    detected flags and odometry per step) from the episode's ``checkpoint.pkl``."""
-    from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
-
+def episode_records(episode: Episode) -> list[OnboardRecord]:
+    """The drones' onboard records (boxes, detected flags and odometry per step) from the
+    episode's checkpoint (:class:`EpisodeError` naming it when it is missing, unreadable or
+    shorter than the episode)."""
     path = episode.path / CHECKPOINT_NAME
     if not path.is_file():
         raise EpisodeError(f"{path}: not found (it holds the drones' onboard records)")
     try:
-        with path.open("rb") as handle:
-            checkpoint = pickle.load(handle)
-    except Exception as exc:  # unpickling damaged bytes can raise almost any exception type
-        raise EpisodeError(f"{path}: unreadable checkpoint ({type(exc).__name__})") from None
-    if not isinstance(checkpoint, LoopCheckpoint):
-        raise EpisodeError(f"{path}: not an episode checkpoint")
-    if any(record.steps < len(episode.prediction) for record in checkpoint.records):
-        raise EpisodeError(f"{path}: its records are shorter than episode.npz")
-    return checkpoint.records
+        saved = read_loop_checkpoint(path).records
+    except CheckpointError as exc:
+        raise EpisodeError(str(exc)) from None
+    scenario = episode.scenario
+    if len(saved) != len(scenario.drones):
+        raise EpisodeError(f"{path}: holds {len(saved)} records, the scenario has drones "
+                           f"{', '.join(map(str, scenario.drone_ids))}")  # fmt: skip
+    records = []
+    for drone, state in zip(scenario.drones, saved, strict=True):
+        steps = int(state["steps"])
+        if steps < len(episode.prediction):
+            raise EpisodeError(f"{path}: its records are shorter than episode.npz")
+        record = OnboardRecord(drone.id, drone.altitude, scenario.target_ids, drone.targets,
+                               steps, {})  # fmt: skip
+        try:
+            record.restore(state)
+        except (ValueError, KeyError, TypeError) as exc:
+            raise EpisodeError(f"{path}: not the records of {scenario.name} ({exc})") from None
+        records.append(record)
+    return records
 
 
 def withhold_undetected(episode: Episode, records: list | None = None) -> Episode:
     """``episode`` with only the predictions made while the drone detected the target marked
     sent, as a drone with ``drone.detected_only`` sends them (from ``records``, default: those in
-    ``checkpoint.pkl``, :func:`episode_records`)."""
+    checkpoint, :func:`episode_records`)."""
     steps = len(episode.prediction)
     records = episode_records(episode) if records is None else records
     detected = np.stack([r.detected[:steps] for r in records], axis=1)

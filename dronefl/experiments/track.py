@@ -56,6 +56,7 @@ from dronefl.experiments.loop_checkpoint import (
 from dronefl.experiments.prepare import Prepared, prepare
 from dronefl.fl.simulation import run_session
 from dronefl.learners import LEARNERS, Learner, LearnerSetup
+from dronefl.learners.base import arrays_to_weights, weights_to_arrays
 from dronefl.learners.federated import session_settings
 from dronefl.models.model import PredictorConfig, build_model, count_parameters
 from dronefl.models.predictor import RUNTIMES, TrajectoryPredictor
@@ -71,6 +72,7 @@ from dronefl.results.episode import (
     tracking_metrics,
 )
 from dronefl.roles import CloudNode, DroneNode, Fused, Received, Uplink, scenario_fuser
+from dronefl.serialize import from_json, to_json
 from dronefl.settings import Setting
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser, FusionConfig, set_distances
@@ -258,7 +260,7 @@ class ClosedLoop:
         if not self.frames_in:
             self.model_config = prepared.spec.model
             shared = self._predictor(prepared.state)
-        self.world = saved.world if saved else World(scenario, config.environment, config.seed)
+        self.world = World(scenario, config.environment, config.seed)
         self.cloud_vision = learner.cloud_predicts and config.detector == "yolo"
         if self.frames_in:
             from dronefl.perception.uplink import FrameUplink
@@ -301,24 +303,24 @@ class ClosedLoop:
 
     def checkpoint(self, step: int, wall_seconds: float) -> LoopCheckpoint:
         """The loop's state before step ``step``, after ``wall_seconds`` s of wall time in
-        all (see :mod:`dronefl.experiments.loop_checkpoint`). It refers to the live parts:
-        save it before the next step."""
+        all (see :mod:`dronefl.experiments.loop_checkpoint`)."""
+        label_fuser = self.cloud.label_fuser
         return LoopCheckpoint(
             identity=self.config.identity(),
             step=step,
-            world=self.world,
-            fuser=self.cloud.fuser,
-            label_fuser=self.cloud.label_fuser,
-            records=self.records,
-            reporters=[drone.reporter for drone in self.drones],
-            log=self.log,
-            counter=self.counter,
-            rounds=self.rounds,
+            world=self.world.state(),
+            fuser=self.cloud.fuser.state(),
+            label_fuser=None if label_fuser is None else label_fuser.state(),
+            records=[drone.record.state() for drone in self.drones],
+            reporters=[None if d.reporter is None else d.reporter.state() for d in self.drones],
+            log=self.log.state(),
+            counter=self.counter.state(),
+            rounds=[to_json(entry) for entry in self.rounds],
             detector=self.detector.state(),
             planner=self.cloud.planner.state(),
             learner=self.learner.state(),
             predictors={
-                d.drone_id: d.predictor.model.state_dict()
+                d.drone_id: weights_to_arrays(d.predictor.model.state_dict())
                 for d in self.drones
                 if d.predictor is not None
             },
@@ -328,19 +330,29 @@ class ClosedLoop:
         )
 
     def _restore(self, saved: LoopCheckpoint) -> None:
-        self.cloud.fuser, self.cloud.label_fuser = saved.fuser, saved.label_fuser
+        """Take up the ``saved`` state in the parts built anew."""
+        self.world.restore(saved.world)
+        self.cloud.fuser.restore(saved.fuser)
+        if self.cloud.label_fuser is not None:
+            self.cloud.label_fuser.restore(saved.label_fuser)
         self.cloud.planner.restore(saved.planner)
-        self.cloud.planner_seconds = saved.planner_seconds
+        self.cloud.planner_seconds = float(saved.planner_seconds)
         for drone, record, reporter in zip(
             self.drones, saved.records, saved.reporters, strict=True
         ):
-            drone.record, drone.reporter = record, reporter
+            drone.record.restore(record)
+            if drone.reporter is not None:
+                drone.reporter.restore(reporter)
             if drone.drone_id in saved.predictors:
-                drone.predictor = self._predictor(saved.predictors[drone.drone_id])
-        self.log, self.counter, self.rounds = saved.log, saved.counter, saved.rounds
+                drone.predictor = self._predictor(
+                    arrays_to_weights(saved.predictors[drone.drone_id])
+                )
+        self.log = EpisodeLog.from_state(saved.log)
+        self.counter.restore(saved.counter)
+        self.rounds = [from_json(ClosedLoopRound, entry) for entry in saved.rounds]
         self.detector.restore(saved.detector)
         self.learner.restore(saved.learner)
-        self.fl_seconds = saved.fl_seconds
+        self.fl_seconds = float(saved.fl_seconds)
 
     def step(self, k: int) -> None:
         """Step ``k``: detect -> predict -> send -> fuse -> plan -> send -> step."""

@@ -95,12 +95,23 @@ class Learner(ABC):
 
     def state(self) -> object:
         """What the learner carries from one update to the next (weights, round history), as
-        plain Python, numpy and torch objects, for an episode checkpoint
-        (:mod:`dronefl.experiments.loop_checkpoint`); ``None`` (the default): nothing. Runtime
-        objects (the Flower driver) are not part of it: the resumed episode builds new ones."""
+        numpy arrays and plain Python values (:func:`dronefl.io.save_state`'s kinds), for an
+        episode checkpoint (:mod:`dronefl.experiments.loop_checkpoint`); ``None`` (the
+        default): nothing. Runtime objects (the Flower driver) are not part of it: the resumed
+        episode builds new ones."""
         return None
 
     def restore(self, state: object) -> None:
         """Continue from ``state``, a :meth:`state` of a learner built with the same setup."""
         if state is not None:
             raise ValueError(f"{type(self).__name__} carries no state to restore, got {state!r}")
+
+
+def weights_to_arrays(state: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """Model weights as numpy arrays (copies), for a checkpoint."""
+    return {k: v.detach().cpu().numpy().copy() for k, v in state.items()}
+
+
+def arrays_to_weights(arrays: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+    """:func:`weights_to_arrays` back as tensors."""
+    return {k: torch.from_numpy(np.array(v, copy=True)) for k, v in arrays.items()}

@@ -4,9 +4,14 @@ pooled data of every drone (paper Table I)."""
 from __future__ import annotations
 
 import numpy as np
-import torch
 
-from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
+from dronefl.learners.base import (
+    Learner,
+    LearnerSetup,
+    ModelUpdate,
+    arrays_to_weights,
+    weights_to_arrays,
+)
 from dronefl.logs import PseudoLabels
 from dronefl.models.model import build_model
 from dronefl.models.online import OnboardRecord
@@ -45,10 +50,10 @@ class CentralizedLearner(Learner):
         stats = train_pooled(self.model, windows, train)
         return ModelUpdate(self.model.state_dict(), {0: stats.loss})
 
-    def state(self) -> dict[str, torch.Tensor]:
+    def state(self) -> dict[str, np.ndarray]:
         """The large model's current weights (it trains on from them in the next update)."""
-        return self.model.state_dict()
+        return weights_to_arrays(self.model.state_dict())
 
-    def restore(self, state: dict[str, torch.Tensor]) -> None:
+    def restore(self, state: dict[str, np.ndarray]) -> None:
         """Continue from the weights ``state``."""
-        self.model.load_state_dict(state)
+        self.model.load_state_dict(arrays_to_weights(state))

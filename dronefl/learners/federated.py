@@ -10,14 +10,18 @@ folder and continues from the global model and round history of its checkpoint.
 from __future__ import annotations
 
 import shutil
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from dronefl.fl.records import FlSettings, RoundRecord
-from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
+from dronefl.learners.base import (
+    Learner,
+    LearnerSetup,
+    ModelUpdate,
+    arrays_to_weights,
+    weights_to_arrays,
+)
 from dronefl.logs import PseudoLabels
 from dronefl.models.online import OnboardRecord
 
@@ -29,17 +33,6 @@ def session_settings(setup: LearnerSetup) -> FlSettings:
     return setup.fl_settings(
         "dronefl", str(setup.out / "fl" / "round_01"), str(setup.out / "fl" / "global")
     )
-
-
-@dataclass(frozen=True)
-class FederatedState:
-    """What a federated learner carries between rounds: the global ``weights``, the
-    ``history`` of the rounds played (the server's ``history.json`` goes on from it) and, with
-    SCAFFOLD, the cloud's ``control`` variate."""
-
-    weights: dict[str, torch.Tensor]
-    history: tuple[RoundRecord, ...]
-    control: dict[str, torch.Tensor] | None = None
 
 
 class FederatedLearner(Learner):
@@ -81,17 +74,23 @@ class FederatedLearner(Learner):
             weight_bytes_up={d: share["up"] for d in drones},
         )
 
-    def state(self) -> FederatedState:
-        """The global weights, the round history and the control variate (SCAFFOLD)."""
-        return FederatedState(self.weights, tuple(self.driver.history), self.driver.control)
+    def state(self) -> dict:
+        """The global weights, the round history (``history.json``'s entries) and the
+        cloud's control variate (SCAFFOLD; ``None`` without)."""
+        control = self.driver.control
+        return {
+            "weights": weights_to_arrays(self.weights),
+            "history": [entry.to_json() for entry in self.driver.history],
+            "control": None if control is None else weights_to_arrays(control),
+        }
 
-    def restore(self, state: FederatedState) -> None:
+    def restore(self, state: dict) -> None:
         """Continue from ``state``: the next round starts from its weights and the server's
         history goes on from its rounds."""
-        self.weights = state.weights
-        self.driver.history = list(state.history)
-        if state.control is not None:
-            self.driver.control = state.control
+        self.weights = arrays_to_weights(state["weights"])
+        self.driver.history = [RoundRecord.from_json(entry) for entry in state["history"]]
+        if state["control"] is not None:
+            self.driver.control = arrays_to_weights(state["control"])
 
 
 def write_round_data(folder: Path, records: list[OnboardRecord], labels: np.ndarray) -> None:

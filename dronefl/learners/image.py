@@ -18,7 +18,13 @@ import dataclasses
 import numpy as np
 import torch
 
-from dronefl.learners.base import Learner, LearnerSetup, ModelUpdate
+from dronefl.learners.base import (
+    Learner,
+    LearnerSetup,
+    ModelUpdate,
+    arrays_to_weights,
+    weights_to_arrays,
+)
 from dronefl.models.image import (
     FrameTransformer,
     FrameWindows,
@@ -108,12 +114,12 @@ class CentralizedImageLearner(Learner):
         """The model's weights and every frame received so far (``(steps, P, P, 3)`` uint8
         per drone)."""
         return {
-            "model": self.model.state_dict(),
+            "model": weights_to_arrays(self.model.state_dict()),
             "frames": [np.stack(f) if f else None for f in self.frames],
         }
 
     def restore(self, state: dict[str, object]) -> None:
         """Continue from ``state`` (:meth:`state`)."""
-        self.model.load_state_dict(state["model"])
+        self.model.load_state_dict(arrays_to_weights(state["model"]))
         self.model.eval()
         self.frames = [list(f) if f is not None else [] for f in state["frames"]]

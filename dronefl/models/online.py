@@ -64,6 +64,25 @@ class OnboardRecord:
             self.detected[window][:, self.assigned],
         )
 
+    def state(self) -> dict:
+        """What was recorded so far (arrays and the step count), for an episode checkpoint."""
+        k = self.steps
+        return {
+            "steps": k, "t": self.t[:k].copy(), "odometry": self.odometry[:k].copy(),
+            "boxes": self.boxes[:k].copy(), "detected": self.detected[:k].copy(),
+            "confidence": self.confidence[:k].copy(),
+        }  # fmt: skip
+
+    def restore(self, state: dict) -> None:
+        """Continue from ``state`` (:meth:`state` of a record of the same drone); its steps
+        must fit this record's capacity."""
+        k = int(state["steps"])
+        if k > len(self.t):
+            raise ValueError(f"drone {self.drone_id}: {k} recorded steps exceed {len(self.t)}")
+        for name in ("t", "odometry", "boxes", "detected", "confidence"):
+            getattr(self, name)[:k] = state[name]
+        self.steps = k
+
     def to_log(self) -> OnboardLog:
         """Everything recorded so far as an onboard log (copies)."""
         k = self.steps

@@ -10,7 +10,7 @@
 from __future__ import annotations
 
 import zipfile
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 import numpy as np
@@ -86,6 +86,20 @@ class EpisodeLog:
             cost=np.zeros(n_steps),
             sent=np.zeros((n_steps, m, n), dtype=bool),
         )
+
+    def state(self) -> dict:
+        """The log as arrays and its FL steps, for an episode checkpoint."""
+        arrays = {
+            f.name: getattr(self, f.name).copy()
+            for f in fields(self)
+            if isinstance(getattr(self, f.name), np.ndarray)
+        }
+        return {"arrays": arrays, "fl_steps": list(self.fl_steps)}
+
+    @classmethod
+    def from_state(cls, state: dict) -> EpisodeLog:
+        """The log a :meth:`state` holds."""
+        return cls(**state["arrays"], fl_steps=[int(k) for k in state["fl_steps"]])
 
     def save(self, path: Path) -> Path:
         """Write the log as ``.npz`` (atomically)."""

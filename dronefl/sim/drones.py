@@ -70,6 +70,22 @@ class DroneTeam:
         self._rates = (attitude - self._attitude) / dt
         self._attitude = attitude
 
+    def state(self) -> dict:
+        """Everything that changes as the drones fly (arrays and the odometry noise's random
+        generator state), for an episode checkpoint; :meth:`restore` takes it back."""
+        return {
+            "position": self.position.copy(), "velocity": self.velocity.copy(),
+            "acceleration": self.acceleration.copy(), "attitude": self._attitude.copy(),
+            "rates": self._rates.copy(), "rng": self.rng.bit_generator.state,
+        }  # fmt: skip
+
+    def restore(self, state: dict) -> None:
+        """Continue from ``state`` (:meth:`state` of a team of the same scenario)."""
+        self.position, self.velocity = state["position"].copy(), state["velocity"].copy()
+        self.acceleration = state["acceleration"].copy()
+        self._attitude, self._rates = state["attitude"].copy(), state["rates"].copy()
+        self.rng.bit_generator.state = state["rng"]
+
     def camera_positions(self) -> np.ndarray:
         """Camera centres ``(M, 3)`` m."""
         return np.concatenate([self.position, self.altitude[:, None]], axis=-1)

@@ -139,6 +139,23 @@ class TargetFleet:
             self.velocity[j] = (new - self.position[j]) / dt
             self.position[j] = new
 
+    def state(self) -> dict:
+        """Everything that changes as the vehicles move (arrays and the random generator's
+        state), for an episode checkpoint; :meth:`restore` takes it back."""
+        return {
+            "arc": self.arc.copy(), "position": self.position.copy(),
+            "velocity": self.velocity.copy(), "heading": self.heading.copy(),
+            "walk": self.walk.copy(), "next_walk_draw": self._next_walk_draw.copy(),
+            "rng": self.rng.bit_generator.state,
+        }  # fmt: skip
+
+    def restore(self, state: dict) -> None:
+        """Continue from ``state`` (:meth:`state` of a fleet of the same scenario)."""
+        self.arc, self.position = state["arc"].copy(), state["position"].copy()
+        self.velocity, self.heading = state["velocity"].copy(), state["heading"].copy()
+        self.walk, self._next_walk_draw = state["walk"].copy(), state["next_walk_draw"].copy()
+        self.rng.bit_generator.state = state["rng"]
+
     def states(self) -> tuple[TargetState, ...]:
         """Current true states of all vehicles, in scenario order."""
         return tuple(

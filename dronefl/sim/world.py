@@ -71,6 +71,23 @@ class World:
         self.steps += 1
         self.t = self.steps * self.dt
 
+    def state(self) -> dict:
+        """The clock, the vehicles' and the drones' state (:meth:`TargetFleet.state`,
+        :meth:`DroneTeam.state`), for an episode checkpoint."""
+        return {
+            "t": self.t,
+            "steps": self.steps,
+            "targets": self.targets.state(),
+            "drones": self.drones.state(),
+        }
+
+    def restore(self, state: dict) -> None:
+        """Continue from ``state`` (:meth:`state` of a world of the same scenario, environment
+        and seed)."""
+        self.t, self.steps = float(state["t"]), int(state["steps"])
+        self.targets.restore(state["targets"])
+        self.drones.restore(state["drones"])
+
     def target_states(self) -> tuple[TargetState, ...]:
         """True states of all vehicles."""
         return self.targets.states()

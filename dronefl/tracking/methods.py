@@ -122,6 +122,14 @@ class FusionMethod(ABC):
         ``covariance`` ``(G, n, n)`` of ``batch.targets``, adapting the measured pairs' ``R``
         (the inputs are left unchanged)."""
 
+    @abstractmethod
+    def state(self) -> np.ndarray:
+        """What the method adapts (every pair's noise, in its own form), for a checkpoint."""
+
+    @abstractmethod
+    def restore(self, state: np.ndarray) -> None:
+        """Continue from ``state`` (:meth:`state` of a method of the same sizes)."""
+
 
 class SequentialAdaptive(FusionMethod):
     r"""The paper's fusion (SPEC §6): sequential gated EKF updates in drone order,
@@ -150,6 +158,14 @@ class SequentialAdaptive(FusionMethod):
 
     def noise(self) -> np.ndarray:
         return np.array([[n.covariance for n in row] for row in self._noise])
+
+    def state(self) -> np.ndarray:
+        return self.noise()
+
+    def restore(self, state: np.ndarray) -> None:
+        for row, covariances in zip(self._noise, state, strict=True):
+            for noise, covariance in zip(row, covariances, strict=True):
+                noise.covariance = covariance.copy()
 
     def update(self, batch, mean, covariance) -> BatchUpdate:
         mean, covariance = mean.copy(), covariance.copy()
@@ -263,6 +279,12 @@ class RobustAdaptive(FusionMethod):
 
     def noise(self) -> np.ndarray:
         return _matrix(self._r * self._inflation)
+
+    def state(self) -> np.ndarray:
+        return self._r.copy()
+
+    def restore(self, state: np.ndarray) -> None:
+        self._r = np.array(state, dtype=float)
 
     def update(self, batch, mean, covariance) -> BatchUpdate:
         config = self.config

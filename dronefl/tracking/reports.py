@@ -163,6 +163,16 @@ class NoiseReporter:
         self.column = {int(t): j for j, t in enumerate(scenario.target_ids)}
         self.residual = ForecastResidual(len(self.column), rate)
 
+    def state(self) -> dict:
+        """The running noise, bias and awaiting prediction (arrays), for a checkpoint."""
+        r = self.residual
+        return {"noise": r._s.copy(), "bias": r._b.copy(), "last": r._last.copy()}
+
+    def restore(self, state: dict) -> None:
+        """Continue from ``state`` (:meth:`state` of a reporter of the same scenario)."""
+        r = self.residual
+        r._s, r._b, r._last = state["noise"].copy(), state["bias"].copy(), state["last"].copy()
+
     def observe(self, record: OnboardRecord) -> None:
         """Compare the last predictions with the detections ``record`` has just stored."""
         ground = record_ground_positions(self.camera, record, self.ground_z, record.steps - 1)

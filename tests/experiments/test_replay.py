@@ -3,7 +3,6 @@ per-drone errors by hand; JSON and markdown written; bad folders give one-line e
 drones' noise reports rebuilt from their records."""
 
 import json
-import pickle
 from dataclasses import fields, replace
 
 import numpy as np
@@ -12,7 +11,11 @@ from typer.testing import CliRunner
 
 from dronefl.cli import app
 from dronefl.config import load_scenario
-from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, LoopCheckpoint
+from dronefl.experiments.loop_checkpoint import (
+    CHECKPOINT_NAME,
+    LoopCheckpoint,
+    save_loop_checkpoint,
+)
 from dronefl.experiments.replay import (
     EpisodeError,
     drone_reports,
@@ -257,9 +260,10 @@ def test_bad_settings_are_named(tmp_path):
     assert "fusion.method: 'kalman'" in result.output
 
 
-def _records_checkpoint(folder, truth):
+def _records_checkpoint(folder, truth, undetected=None):
     """A checkpoint holding only the drones' onboard records: every drone hovers at (15, 5) m
-    and detects every target exactly (box centres projected from the truth)."""
+    and detects every target exactly (box centres projected from the truth), but where
+    ``undetected(drone index, record)`` hides some."""
     scenario = load_scenario("case2")
     camera = PinholeCamera.from_spec(scenario.camera)
     height = scenario.vehicle.height / 2
@@ -273,16 +277,17 @@ def _records_checkpoint(folder, truth):
         record.boxes[..., :2], record.boxes[..., 2:] = uv, 0.02
         record.detected[:] = True
         record.steps = n
-        records.append(record)
-    empty = dict.fromkeys(f.name for f in fields(LoopCheckpoint) if f.name != "format")
-    checkpoint = LoopCheckpoint(**{**empty, "records": records})
-    (folder / CHECKPOINT_NAME).write_bytes(pickle.dumps(checkpoint))
+        if undetected is not None:
+            undetected(len(records), record)
+        records.append(record.state())
+    empty = dict.fromkeys(f.name for f in fields(LoopCheckpoint))
+    save_loop_checkpoint(folder / CHECKPOINT_NAME, LoopCheckpoint(**{**empty, "records": records}))
 
 
 def test_replay_rebuilds_the_drones_noise_reports_from_their_records(tmp_path):
     prediction, truth = _episode(tmp_path / "ep", n_steps=400)
     episode = load_episode(tmp_path / "ep")
-    with pytest.raises(EpisodeError, match="checkpoint.pkl: not found"):
+    with pytest.raises(EpisodeError, match="resume.npz: not found"):
         drone_reports(episode)
     _records_checkpoint(tmp_path / "ep", truth)
     _, reports = drone_reports(episode)
@@ -339,11 +344,12 @@ def test_replay_fuses_only_what_the_drones_detected(tmp_path):
         arrays = {k: npz[k] for k in npz.files}
     arrays["prediction"][100:200, 0, 1] += (1.0, 0.0)
     np.savez(folder / "episode.npz", **arrays)
-    _records_checkpoint(folder, truth)
-    with (folder / CHECKPOINT_NAME).open("rb") as handle:
-        checkpoint = pickle.load(handle)
-    checkpoint.records[0].detected[100:200, 1] = False
-    (folder / CHECKPOINT_NAME).write_bytes(pickle.dumps(checkpoint))
+
+    def hide(i, record):
+        if i == 0:
+            record.detected[100:200, 1] = False
+
+    _records_checkpoint(folder, truth, hide)
     episode = load_episode(folder)
     config = _one_filter()
     every, detected = replay(episode, config), replay(episode, config, detected_only=True)

@@ -9,7 +9,6 @@ checkpoint after steps 35, 70 and 105.
 """
 
 import json
-import pickle
 import signal
 from pathlib import Path
 
@@ -17,7 +16,7 @@ import numpy as np
 import pytest
 from cli_child import run_cli
 
-from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME
+from dronefl.experiments.loop_checkpoint import CHECKPOINT_NAME, read_loop_checkpoint
 
 DURATION = 21.0
 #: Every drone learns every label, so Case 1 (one drone per target) has rounds.
@@ -38,8 +37,7 @@ def track(cli_process, out: Path, pretrained: Path, *args: str, crash_at: str | 
 
 def checkpoint_step(out: Path) -> int:
     """The step the episode checkpoint in ``out`` resumes from."""
-    with (out / CHECKPOINT_NAME).open("rb") as handle:
-        return pickle.load(handle).step
+    return read_loop_checkpoint(out / CHECKPOINT_NAME).step
 
 
 def outcome(out: Path) -> tuple[dict, dict, list, dict, list[int]]:
@@ -67,10 +65,9 @@ def outcome(out: Path) -> tuple[dict, dict, list, dict, list[int]]:
         entry.pop("bytes")
     with np.load(out / "fl" / "global" / "checkpoint.npz") as npz:
         weights = {k: npz[k] for k in npz.files}
-    with (out / CHECKPOINT_NAME).open("rb") as handle:  # the drones' predictor at the end
-        predictors = pickle.load(handle).predictors
+    predictors = read_loop_checkpoint(out / CHECKPOINT_NAME).predictors  # the drones', at the end
     for drone, state in predictors.items():
-        weights |= {f"predictor {drone}:{k}": v.numpy() for k, v in state.items()}
+        weights |= {f"predictor {drone}:{k}": v for k, v in state.items()}
     return metrics, episode, history, weights, sizes
 
 

@@ -8,6 +8,7 @@ import pytest
 
 from dronefl.config import load_scenario
 from dronefl.experiments.replay import Episode, fit_temporal_kernel
+from dronefl.io import load_state, save_state
 from dronefl.tracking import Fuser, FusionConfig, PositionMeasurement
 from dronefl.tracking.fusion import TEMPORAL_KERNEL
 
@@ -112,9 +113,7 @@ def test_the_kernel_is_checked():
     assert config.temporal_kernel == TEMPORAL_KERNEL
 
 
-def test_a_pickled_fuser_goes_on_with_its_kernel_as_if_never_stopped():
-    import pickle
-
+def test_a_restored_fuser_goes_on_with_its_kernel_as_if_never_stopped(tmp_path):
     truth, prediction = _lagging(30)
     config = FusionConfig(temporal_kernel=TEMPORAL_KERNEL)
     fuser = Fuser([1], [1, 2], config, {1: np.zeros(2)})
@@ -125,7 +124,9 @@ def test_a_pickled_fuser_goes_on_with_its_kernel_as_if_never_stopped():
 
     for k in range(12):
         step(fuser, k)
-    copy = pickle.loads(pickle.dumps(fuser))
+    save_state(tmp_path / "fuser.npz", fuser.state())
+    copy = Fuser([1], [1, 2], config, {1: np.zeros(2)})
+    copy.restore(load_state(tmp_path / "fuser.npz"))
     for k in range(12, 30):
         a, b = step(fuser, k)[1], step(copy, k)[1]
         np.testing.assert_array_equal(a.mean, b.mean)
