@@ -8,6 +8,40 @@ any work starts, and returns a frozen :class:`Scenario`. Every error is a
 The field is worked in parallel east-west *lanes* ``lane_spacing`` m apart (crop rows in
 ``crop_field``, alleys between tree rows in ``orchard``); lane ``k`` runs along
 ``y = (k + 1/2) * lane_spacing`` between the two headlands.
+
+Reading is safe for any file: one larger than :data:`MAX_SCENARIO_BYTES` is refused unread,
+and YAML anchors and aliases (which a scenario never needs, and which let a few hundred bytes
+expand to gigabytes) are refused while the YAML is composed, before anything is built.
+
+Every number must be finite (YAML ``.inf`` and ``.nan`` are refused) and within these bounds
+(``[a, b]`` closed, ``(a, b]`` open at ``a``):
+
+==================================  ===========================================  =====
+field                               bound                                        unit
+==================================  ===========================================  =====
+``name``                            1-64 of ``A-Z a-z 0-9 - _ .``, not ``.`` first
+``rate_hz``                         [1, 50]                                      Hz
+``field.width``, ``field.height``   (0, 327.67] (:data:`MAX_FIELD_SIZE_M`)       m
+``field.lane_spacing``              [1, 327.67], at most ``field.height``        m
+``field.headland``                  (0, 327.67], 2 x headland < ``field.width``  m
+``camera.width_px``, ``height_px``  [16, 8192]                                   px
+``camera.detector_px``              [32, 4096]                                   px
+``camera.hfov_deg``                 (10, 170)                                    deg
+``vehicle.length/width/height``     (0, 20]                                      m
+``odometry_noise.position``         [0, 5]                                       m
+``odometry_noise.velocity``         [0, 5]                                       m/s
+``odometry_noise.attitude``         [0, 0.5]                                     rad
+``odometry_noise.rate``             [0, 1]                                       rad/s
+``targets[k].start_x``              between the headlands                        m
+``targets[k].speed``                (0, 5]                                       m/s
+``targets[k].walk_std``             (0, 5]                                       m/s
+``targets[k].walk_period``          (0, 3600]                                    s
+``targets[k].path_gain``            (0, 1] (at most 1 / dt: no overshoot)        1/s
+``drones[k].altitude``              [5, 150], above ``vehicle.height``           m
+``drones[k].max_speed``             [0.1, 30]                                    m/s
+``drones[k].max_accel``             [0.1, 20]                                    m/s^2
+``drones[k].start``                 inside the field                             m
+==================================  ===========================================  =====
 """
 
 from __future__ import annotations
@@ -16,28 +50,35 @@ import dataclasses
 import hashlib
 import json
 import math
+import re
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
 import yaml
-from pydantic import ConfigDict, Field, ValidationError, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic.dataclasses import dataclass
 
 ENVIRONMENTS = ("crop_field", "orchard", "open")
 Environment = Literal["crop_field", "orchard", "open"]
 MotionModel = Literal["constant_speed", "random_walk"]
 
-PositiveFloat = Annotated[float, Field(gt=0)]
-NonNegativeFloat = Annotated[float, Field(ge=0)]
-
-_STRICT = ConfigDict(extra="forbid", strict=True, frozen=True)
+# Infinity and NaN are refused in every float field (allow_inf_nan=False).
+_STRICT = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
 #: Largest field side, m: positions travel as int16 centimetres (:mod:`dronefl.wire`).
 MAX_FIELD_SIZE_M = 327.67
 #: Largest target or drone id: ids travel as one unsigned byte (:mod:`dronefl.wire`).
 MAX_ID = 255
+#: Largest scenario file, bytes (the shipped ones are under 2 KB); a larger one is not read.
+MAX_SCENARIO_BYTES = 1_000_000
+#: Deepest nesting of YAML collections in a scenario file (a scenario needs 4).
+MAX_YAML_DEPTH = 16
+#: A scenario name: it becomes a folder name (``<cache>/<name>/``, ``<out>/<name>/``), so
+#: only ASCII letters, digits, ``-``, ``_`` and ``.`` (never first: no ``.``, ``..`` or hidden
+#: folder), 1-64 characters. The dot is allowed for names like ``case1-altitude-29.9m``.
+NAME_PATTERN = re.compile(r"[A-Za-z0-9_-][A-Za-z0-9._-]{0,63}")
 
 
 class ScenarioError(ValueError):
@@ -49,10 +90,10 @@ class FieldSpec:
     """The farm: ``width`` x ``height`` m (x east, y north), lanes ``lane_spacing`` m apart,
     and a ``headland`` strip of that many m at the west and east ends where vehicles turn."""
 
-    width: PositiveFloat = 160.0
-    height: PositiveFloat = 120.0
-    lane_spacing: PositiveFloat = 5.0
-    headland: PositiveFloat = 20.0
+    width: Annotated[float, Field(gt=0)] = 160.0
+    height: Annotated[float, Field(gt=0)] = 120.0
+    lane_spacing: Annotated[float, Field(ge=1, le=MAX_FIELD_SIZE_M)] = 5.0
+    headland: Annotated[float, Field(gt=0, le=MAX_FIELD_SIZE_M)] = 20.0
 
     @property
     def n_lanes(self) -> int:
@@ -69,10 +110,10 @@ class CameraSpec:
     """Downward pinhole camera: sensor ``width_px`` x ``height_px`` with ``hfov_deg`` horizontal
     field of view; frames are resized to ``detector_px`` x ``detector_px`` for the detector."""
 
-    width_px: Annotated[int, Field(gt=0)] = 1280
-    height_px: Annotated[int, Field(gt=0)] = 720
-    hfov_deg: Annotated[float, Field(gt=0, lt=180)] = 80.0
-    detector_px: Annotated[int, Field(gt=0)] = 640
+    width_px: Annotated[int, Field(ge=16, le=8192)] = 1280
+    height_px: Annotated[int, Field(ge=16, le=8192)] = 720
+    hfov_deg: Annotated[float, Field(gt=10, lt=170)] = 80.0
+    detector_px: Annotated[int, Field(ge=32, le=4096)] = 640
 
     def footprint_half_extent(self, height_above: float) -> tuple[float, float]:
         """Half-width and half-height (m) of the ground footprint seen from ``height_above`` m:
@@ -85,9 +126,9 @@ class CameraSpec:
 class VehicleSpec:
     """Size of every ground vehicle (a box), m."""
 
-    length: PositiveFloat = 4.0
-    width: PositiveFloat = 2.0
-    height: PositiveFloat = 1.5
+    length: Annotated[float, Field(gt=0, le=20)] = 4.0
+    width: Annotated[float, Field(gt=0, le=20)] = 2.0
+    height: Annotated[float, Field(gt=0, le=20)] = 1.5
 
 
 @dataclass(config=_STRICT)
@@ -95,10 +136,10 @@ class OdometryNoiseSpec:
     """Standard deviations of the odometry noise: position m, velocity m/s, attitude rad,
     angular rate rad/s."""
 
-    position: NonNegativeFloat = 0.05
-    velocity: NonNegativeFloat = 0.05
-    attitude: NonNegativeFloat = 0.01
-    rate: NonNegativeFloat = 0.02
+    position: Annotated[float, Field(ge=0, le=5)] = 0.05
+    velocity: Annotated[float, Field(ge=0, le=5)] = 0.05
+    attitude: Annotated[float, Field(ge=0, le=0.5)] = 0.01
+    rate: Annotated[float, Field(ge=0, le=1)] = 0.02
 
 
 @dataclass(config=_STRICT)
@@ -117,11 +158,12 @@ class TargetSpec:
     start_x: float
     heading: Literal["east", "west"] = "east"
     motion: MotionModel = "constant_speed"
-    speed: PositiveFloat = 0.5
+    speed: Annotated[float, Field(gt=0, le=5)] = 0.5
     lane_shift: Annotated[int, Field(ge=1)] = 6
-    walk_std: PositiveFloat = 1.0
-    walk_period: PositiveFloat = 1.0
-    path_gain: PositiveFloat = 0.2
+    walk_std: Annotated[float, Field(gt=0, le=5)] = 1.0
+    walk_period: Annotated[float, Field(gt=0, le=3600)] = 1.0
+    # At most 1 / dt for the slowest rate (1 Hz): a correction never overshoots the path.
+    path_gain: Annotated[float, Field(gt=0, le=1)] = 0.2
 
 
 @dataclass(config=_STRICT)
@@ -134,10 +176,10 @@ class DroneSpec:
     """
 
     id: Annotated[int, Field(ge=1)]
-    altitude: PositiveFloat
+    altitude: Annotated[float, Field(ge=5, le=150)]
     targets: tuple[int, ...]
-    max_speed: PositiveFloat = 3.0
-    max_accel: PositiveFloat = 2.0
+    max_speed: Annotated[float, Field(ge=0.1, le=30)] = 3.0
+    max_accel: Annotated[float, Field(ge=0.1, le=20)] = 2.0
     start: tuple[float, float] | None = None
 
 
@@ -150,7 +192,7 @@ class Scenario:
     drones: tuple[DroneSpec, ...]
     description: str = ""
     environment: Environment = "crop_field"
-    rate_hz: PositiveFloat = 5.0
+    rate_hz: Annotated[float, Field(ge=1, le=50)] = 5.0
     field: FieldSpec = FieldSpec()
     camera: CameraSpec = CameraSpec()
     vehicle: VehicleSpec = VehicleSpec()
@@ -186,6 +228,16 @@ class Scenario:
             if d.id == drone_id:
                 return d
         raise KeyError(f"no drone {drone_id} in scenario {self.name!r}")
+
+    @field_validator("name")
+    @classmethod
+    def _check_name(cls, name: str) -> str:
+        if not NAME_PATTERN.fullmatch(name):
+            raise ValueError(
+                f"name: {_shown(name)} is not a name of 1-64 ASCII letters, digits, '-', '_' "
+                "and '.' (not first)"
+            )
+        return name
 
     @model_validator(mode="after")
     def _check_consistency(self) -> Scenario:
@@ -323,7 +375,9 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     """Load and validate a scenario; raises :class:`ScenarioError` naming file and field."""
     path = scenario_path(name_or_path)
     try:
-        raw = yaml.safe_load(path.read_text())
+        raw = yaml.load(_read_scenario_text(path), Loader=_ScenarioLoader)
+    except _RefusedYaml as exc:
+        raise ScenarioError(f"{path}: {exc.problem} (line {exc.problem_mark.line + 1})") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f" (line {mark.line + 1})" if mark is not None else ""
@@ -335,15 +389,59 @@ def load_scenario(name_or_path: str | Path) -> Scenario:
     return parse_scenario(raw, source=str(path))
 
 
+def _read_scenario_text(path: Path) -> str:
+    """The UTF-8 text of ``path``, read only if it has at most :data:`MAX_SCENARIO_BYTES`."""
+    with path.open("rb") as file:
+        data = file.read(MAX_SCENARIO_BYTES + 1)
+    if len(data) > MAX_SCENARIO_BYTES:
+        raise ScenarioError(
+            f"{path}: larger than the {MAX_SCENARIO_BYTES} bytes a scenario file may have"
+        )
+    return data.decode("utf-8")
+
+
+class _RefusedYaml(yaml.MarkedYAMLError):
+    """Valid YAML that a scenario file may not use (``problem`` says what, at ``problem_mark``)."""
+
+
+class _ScenarioLoader(yaml.SafeLoader):
+    """``yaml.safe_load``'s loader that refuses anchors, aliases and collections nested deeper
+    than :data:`MAX_YAML_DEPTH` while composing, before any Python object is built: an alias
+    bomb ("billion laughs") is refused at its first anchor instead of expanding."""
+
+    def __init__(self, stream: str) -> None:
+        super().__init__(stream)
+        self._depth = 0
+
+    def compose_node(self, parent: yaml.Node | None, index: object) -> yaml.Node | None:
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent) or event.anchor is not None:
+            raise _RefusedYaml(
+                problem="YAML anchors and aliases (&, *) are not allowed in a scenario",
+                problem_mark=event.start_mark,
+            )
+        if self._depth >= MAX_YAML_DEPTH:
+            raise _RefusedYaml(
+                problem=f"YAML nested deeper than {MAX_YAML_DEPTH} levels",
+                problem_mark=event.start_mark,
+            )
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
 def parse_scenario(raw: dict, source: str = "<scenario>") -> Scenario:
     """Validate a scenario given as a mapping (the parsed YAML)."""
     try:
         # Round-trip through JSON so that strict validation sees YAML lists as JSON arrays
         # (accepted for tuple fields) while still refusing '5' for a number.
         text = json.dumps(raw)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, RecursionError):
+        where = _field_path(_not_plain(raw) or ())
         raise ScenarioError(
-            f"{source}: holds values that are not plain numbers/strings/lists"
+            f"{source}: {where}: not a plain number, string, list or mapping"
         ) from None
     try:
         return Scenario.__pydantic_validator__.validate_json(text, strict=True)
@@ -351,15 +449,61 @@ def parse_scenario(raw: dict, source: str = "<scenario>") -> Scenario:
         raise ScenarioError(f"{source}: {_first_error(exc)}") from None
 
 
+_PLAIN = (str, int, float, bool, type(None))
+
+
+def _not_plain(value: object, loc: tuple[str | int, ...] = ()) -> tuple[str | int, ...] | None:
+    """Where in ``value`` (found at ``loc``) the first thing JSON cannot carry is (a value of
+    another type, such as a YAML date, a key that is not a plain scalar, or nesting deeper than
+    :data:`MAX_YAML_DEPTH`, such as a cycle); ``None`` where there is nothing of the kind."""
+    if len(loc) > MAX_YAML_DEPTH:
+        return loc
+    if isinstance(value, dict):
+        for key, item in value.items():
+            if not isinstance(key, _PLAIN):
+                return loc
+            found = _not_plain(item, (*loc, key if isinstance(key, str) else json.dumps(key)))
+            if found is not None:
+                return found
+        return None
+    if isinstance(value, list | tuple):
+        for k, item in enumerate(value):
+            found = _not_plain(item, (*loc, k))
+            if found is not None:
+                return found
+        return None
+    return None if isinstance(value, _PLAIN) else loc
+
+
+#: A key shown as is in a field path; any other is shown quoted (``drones[0]['a b']``).
+_PLAIN_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def _field_path(loc: tuple[str | int, ...]) -> str:
+    """``('drones', 0, 'altitude')`` -> ``drones[0].altitude`` (``scenario`` for ``()``); keys
+    that are not plain words are quoted, so the path stays on one line."""
+    parts = [
+        f"[{p}]" if isinstance(p, int) else f".{p}" if _PLAIN_KEY.fullmatch(p) else f"[{p!r}]"
+        for p in loc
+    ]
+    return "".join(parts).lstrip(".") or "scenario"
+
+
+def _shown(value: object, limit: int = 60) -> str:
+    """``repr(value)`` (escapes keep it on one line), cut to about ``limit`` characters."""
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[: limit - 3]}..."
+
+
 def _first_error(exc: ValidationError) -> str:
     err = exc.errors()[0]
-    loc = "".join(f"[{p}]" if isinstance(p, int) else f".{p}" for p in err["loc"]).lstrip(".")
+    loc = _field_path(tuple(err["loc"]))
     msg = err["msg"]
     if err["type"] in ("extra_forbidden", "unexpected_keyword_argument"):
         return f"{loc}: unknown key"
     if err["type"] == "value_error":
-        # Our own cross-field checks already start with the field path.
+        # Our own checks already start with the field path.
         return msg.removeprefix("Value error, ")
     got = err.get("input")
-    shown = "" if isinstance(got, dict | list) else f" (got {got!r})"
-    return f"{loc or 'scenario'}: {msg}{shown}"
+    shown = "" if isinstance(got, dict | list) else f" (got {_shown(got)})"
+    return f"{loc}: {msg}{shown}"
