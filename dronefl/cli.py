@@ -40,6 +40,15 @@ app = typer.Typer(
     help="DroneFL: federated learning for multi-drone visual target tracking.",
 )
 
+#: How long the process waits at exit for threads that are still running, s.
+EXIT_GRACE_S = 5.0
+#: Exit code after Ctrl-C (SIGINT), as Click gives it: 128 + 2.
+INTERRUPTED = 130
+#: Exit code after SIGTERM: 128 + 15.
+TERMINATED_CODE = 128 + signal.SIGTERM
+#: Set once SIGTERM has arrived.
+TERMINATED = threading.Event()
+
 #: Errors that mean "bad input": reported as one line, exit code 2, no traceback.
 USER_ERRORS: tuple[type[Exception], ...] = (ScenarioError, LogError, FileNotFoundError)
 
@@ -773,6 +782,38 @@ def pretrain(
         typer.echo(f"wrote {prepared.spec.model_path(out)}")
 
 
+@app.command()
+def reproduce(
+    artefact: Annotated[
+        str, typer.Argument(help="fig4 | fig5 | table1 | table2 | all (the paper's artefacts).")
+    ],
+    out: OutOption = Path("runs/reproduce"),
+    quick: Annotated[
+        bool,
+        typer.Option("--quick", help="A smoke run of minutes: one seed, few rounds, short runs."),
+    ] = False,
+    pretrained: Annotated[
+        Path | None,
+        typer.Option(help="Cache of pretrained models (default: OUT/pretrained)."),
+    ] = None,
+) -> None:
+    """Reproduce a paper artefact exactly as the README reports it (Fig. 5's per-case training
+    included), resuming from what OUT holds; writes OUT/ARTEFACT/ARTEFACT.md with ours beside
+    the paper's, and the plots.
+
+    Example: dronefl reproduce table1 --out runs/reproduce
+    """
+    from dronefl.reproduce import ARTEFACTS
+    from dronefl.reproduce import reproduce as run
+
+    check_choice(artefact, (*ARTEFACTS, "all"), "ARTEFACT")
+    if pretrained is not None:
+        writable_folder(pretrained)
+    written = run(artefact, out, quick=quick, pretrained=pretrained)
+    typer.echo(written.read_text() if written.is_file() else "")
+    typer.echo(f"wrote {written}")
+
+
 setting_app = typer.Typer(no_args_is_help=True, help="Settings: show one, resolved.")
 app.add_typer(setting_app, name="setting")
 
@@ -859,24 +900,23 @@ StartTimeoutOption = Annotated[
     float, typer.Option("--start-timeout", help="Seconds to wait for the other processes.")
 ]
 TlsDirOption = Annotated[
-    str, typer.Option("--tls-dir", help="Folder of `dronefl deploy certs` (empty: no TLS).")
+    str, typer.Option("--tls-dir", help="Folder of `dronefl deploy certs` (TLS, access control).")
+]
+InsecureOption = Annotated[
+    bool, typer.Option("--insecure", help="Plain TCP, no authentication (instead of --tls-dir).")
 ]
 ModelOption = Annotated[Path, typer.Option("--model", help="Model weights file (by path).")]
 
 
 @contextmanager
 def _deploy_errors() -> Iterator[None]:
-    """Run a deployment command: SIGTERM ends it like Ctrl-C (so that it stops its children);
+    """Run a deployment command: Ctrl-C or SIGTERM stops its children and ends it with one line;
     a bad setup (code 2) or a failure at run time (code 1) is one line, never a traceback."""
     from dronefl.deploy import CloudError
     from dronefl.deploy.link import LinkError
     from dronefl.deploy.processes import DeployError
     from dronefl.deploy.world import WorldError
 
-    def terminate(signum: int, _frame: object) -> None:
-        raise SystemExit(128 + signum)
-
-    signal.signal(signal.SIGTERM, terminate)
     try:
         yield
     except (ValueError, FileNotFoundError, ScenarioError) as exc:
@@ -885,8 +925,9 @@ def _deploy_errors() -> Iterator[None]:
         typer.secho(f"error: {exc}", err=True, fg="red")
         raise typer.Exit(code=1) from None
     except KeyboardInterrupt:
-        typer.secho("interrupted; every process started was stopped", err=True)
-        raise typer.Exit(code=130) from None
+        cause = "terminated (SIGTERM)" if TERMINATED.is_set() else "interrupted"
+        typer.secho(f"{cause}; every process started was stopped", err=True)
+        raise typer.Exit(code=TERMINATED_CODE if TERMINATED.is_set() else INTERRUPTED) from None
 
 
 def _endpoints(text: str) -> tuple[str, ...]:
@@ -903,21 +944,26 @@ def world(
     grace_ms: Annotated[float, typer.Option(help="Wall ms a control may be late.")] = 150.0,
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
+    insecure: InsecureOption = False,
     out: OutOption = Path("runs/deploy/world"),
 ) -> None:
     """The simulator of a deployment: owns the clock, publishes every drone's sensors over
     Zenoh and applies the controls it receives. Writes world.npz.
 
-    Example: dronefl world --scenario case1 --duration 120 --listen 0.0.0.0:7440
+    Example: dronefl world --scenario case1 --duration 120 --listen 0.0.0.0:7440 --tls-dir certs
     """
+    from dronefl.deploy import INSECURE_WARNING, check_security
     from dronefl.deploy.world import WorldSettings, run_world
 
     check_choice(env, ENVIRONMENTS, "--env")
     with _deploy_errors():
+        check_security(tls_dir, insecure)
         load_scenario(scenario)
         settings = WorldSettings(
             scenario, out, seed, duration, env, listen, tls_dir, start_timeout, grace_ms=grace_ms
         )
+        if insecure:
+            typer.secho(INSECURE_WARNING, err=True, fg="yellow")
         run_world(settings)
 
 
@@ -936,17 +982,20 @@ def drone(
     data_dir: Annotated[Path, typer.Option(help="The drone's disk.")] = Path("runs/deploy/drone"),
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
+    insecure: InsecureOption = False,
 ) -> None:
     """One drone: predictor on ONNX Runtime, onboard record on its disk, predictions up and
     controls down over Zenoh, and a Flower SuperNode that trains on that disk. What it sends
     is the setting's [drone] (give every process of a deployment the same setting file).
 
-    Example: dronefl drone --id 1 --model runs/deploy/model/pretrained.npz --setting s.toml
+    Example: dronefl drone --id 1 --model pretrained.npz --setting s.toml --tls-dir certs
     """
+    from dronefl.deploy import INSECURE_WARNING, check_security
     from dronefl.deploy.drone import DroneSettings, run_drone
 
     chosen = _setting(setting, set_)
     with _deploy_errors():
+        check_security(tls_dir, insecure)
         spec = load_scenario(scenario)
         if drone_id not in spec.drone_ids:
             raise ValueError(
@@ -959,6 +1008,8 @@ def drone(
             scenario, drone_id, model, data_dir, chosen, _endpoints(connect), superlink,
             runtime_port, tls_dir, start_timeout,
         )  # fmt: skip
+        if insecure:
+            typer.secho(INSECURE_WARNING, err=True, fg="yellow")
         run_drone(settings, data_dir / "logs")
 
 
@@ -978,6 +1029,7 @@ def cloud(
     superlink_port: Annotated[int, typer.Option(help="SuperLink port.")] = 7442,
     start_timeout: StartTimeoutOption = 120.0,
     tls_dir: TlsDirOption = "",
+    insecure: InsecureOption = False,
     out: OutOption = Path("runs/deploy/cloud"),
 ) -> None:
     """The cloud: a Flower SuperLink and, launched with `flwr run` against it, the ServerApp
@@ -985,8 +1037,9 @@ def cloud(
 
     The model file must hold the model the setting trains (`dronefl deploy up` writes it).
 
-    Example: dronefl cloud --model runs/deploy/model/pretrained.npz --superlink-host 0.0.0.0
+    Example: dronefl cloud --model pretrained.npz --superlink-host 0.0.0.0 --tls-dir certs
     """
+    from dronefl.deploy import INSECURE_WARNING, check_security
     from dronefl.deploy.clientapp import load_model
     from dronefl.deploy.cloud import CloudSettings
     from dronefl.deploy.superlink import SuperLinkSettings, run_cloud
@@ -994,11 +1047,10 @@ def cloud(
 
     chosen = _setting(setting, set_)
     with _deploy_errors():
+        check_security(tls_dir, insecure)
         spec = load_scenario(scenario)
         if not model.is_file():
             raise FileNotFoundError(f"--model: {model} does not exist")
-        if tls_dir and not Path(tls_dir).is_dir():
-            raise FileNotFoundError(f"--tls-dir: {tls_dir} does not exist")
         out = out.resolve()
         settings = CloudSettings(
             scenario=scenario,
@@ -1023,6 +1075,8 @@ def cloud(
                 "setting it was pretrained with)"
             )
         link = SuperLinkSettings(superlink_host, superlink_port, start_timeout)
+        if insecure:
+            typer.secho(INSECURE_WARNING, err=True, fg="yellow")
         run_cloud(settings, fl, link, out / "logs")
 
 
@@ -1038,7 +1092,10 @@ def deploy_up(
     pretrained: Annotated[Path, typer.Option(help="Cache of pretrained models.")] = Path(
         "runs/pretrained"
     ),
-    tls: Annotated[bool, typer.Option(help="TLS, SuperNode authentication, Zenoh TLS.")] = False,
+    insecure: Annotated[
+        bool,
+        typer.Option("--insecure", help="Plain TCP, no authentication (default: TLS, ACL)."),
+    ] = False,
     certs: Annotated[
         Path | None, typer.Option(help="Certificate folder (default: a fresh one in --out).")
     ] = None,
@@ -1050,10 +1107,13 @@ def deploy_up(
 ) -> None:
     """Run the world, every drone (+ SuperNode) and the cloud (SuperLink + ServerApp) as
     separate processes on 127.0.0.1, all with the same setting (written to OUT/setting.toml);
-    writes metrics.json and logs/ (one log per process).
+    writes metrics.json and logs/ (one log per process). Secure unless --insecure: mutual TLS
+    and access control on every link, SuperNode authentication (certificates: --certs or
+    fresh ones in OUT/certs).
 
     Example: dronefl deploy up --scenario case2 --duration 600 --out runs/deploy
     """
+    from dronefl.deploy import INSECURE_WARNING
     from dronefl.deploy.launcher import DeployConfig, preflight, run_deploy
     from dronefl.experiments.prepare import prepare
 
@@ -1061,11 +1121,13 @@ def deploy_up(
     with _deploy_errors():
         config = DeployConfig(
             scenario=scenario, out=out, setting=chosen, method=method, duration=duration,
-            seed=seed, environment=env, tls=tls, certs=certs, base_port=base_port,
+            seed=seed, environment=env, insecure=insecure, certs=certs, base_port=base_port,
             deadline_ms=deadline_ms, start_timeout=start_timeout, pretrained=pretrained,
             restart_drones=restart_drones,
         )  # fmt: skip
         spec = preflight(config)  # ports and certificates, before any work
+        if insecure:
+            typer.secho(INSECURE_WARNING, err=True, fg="yellow")
         prepared = prepare(spec, chosen, "dronefl", pretrained, progress=False)
         metrics = run_deploy(config, prepared.state, prepared.spec.model)
     from dronefl.report.tables import format_metrics  # heavy (the closed loop's tables)
@@ -1118,32 +1180,44 @@ def deploy_certs(
     from dronefl.deploy.certs import make_certificates
 
     spec = load_scenario(scenario)
-    make_certificates(folder, spec.drone_ids, _endpoints(hosts))
+    try:
+        make_certificates(folder, spec.drone_ids, _endpoints(hosts))
+    except (ValueError, OSError) as exc:
+        raise fail(f"FOLDER: {exc}") from None
     typer.echo(f"wrote {folder}/ (ca.crt, superlink.crt, zenoh-*.crt, supernode-<id>[.pub])")
 
 
 app.command("bench")(bench_command)
 
 
-#: How long the process waits at exit for threads that are still running, s.
-EXIT_GRACE_S = 5.0
-#: Exit code after Ctrl-C (SIGINT), as Click gives it: 128 + 2.
-INTERRUPTED = 130
+def _terminate(_signum: int, frame: object) -> None:
+    """SIGTERM: stop exactly as Ctrl-C does, through the SIGINT handler in place (the
+    simulation engine's notes the interrupt, so that its threads and Ray are ended), and note
+    that it was SIGTERM, for the exit code and the last line."""
+    TERMINATED.set()
+    handler = signal.getsignal(signal.SIGINT)
+    if not callable(handler):  # SIGINT ignored or not set from Python: SIGTERM still stops
+        handler = signal.default_int_handler
+    handler(signal.SIGINT, frame)
 
 
 def main() -> None:
-    """Entry point with bad-input errors turned into one line and exit code 2, and a failed
-    training run into one line and exit code 1; never hangs at exit (see :func:`leave`)."""
+    """Entry point with bad-input errors turned into one line and exit code 2, a failed
+    training run into one line and exit code 1, Ctrl-C into one line and exit code 130, and
+    SIGTERM into one line and exit code 143; never hangs at exit (see :func:`leave`)."""
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         app()
     except SystemExit as exc:
         code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
         if code == INTERRUPTED:
+            cause = "terminated (SIGTERM)" if TERMINATED.is_set() else "interrupted"
             typer.secho(
-                "interrupted: finished rounds and episodes are kept; --resume continues",
+                f"{cause}: finished rounds and episodes are kept; --resume continues",
                 err=True,
                 fg="red",
             )
+            code = TERMINATED_CODE if TERMINATED.is_set() else INTERRUPTED
         leave(code)
     except USER_ERRORS as exc:
         leave(fail(str(exc)).exit_code)

@@ -14,11 +14,11 @@ from dataclasses import replace
 from pathlib import Path
 
 from dronefl.config import load_scenario
-from dronefl.results.episode import EpisodeMetrics
 from dronefl.experiments.track import LoopParts, TrackConfig, run_episode
 from dronefl.perception import make_detector
 from dronefl.perception.base import Detector
 from dronefl.report.tables import comparison
+from dronefl.results.episode import EpisodeMetrics
 from dronefl.sim.world import World
 from dronefl.types import CameraView, Detection
 

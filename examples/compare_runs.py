@@ -19,8 +19,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 
-from dronefl.results.episode import EpisodeMetrics
 from dronefl.report.topdown import save_figure
+from dronefl.results.episode import EpisodeMetrics
 
 #: The compared columns of ``EpisodeMetrics.tracking``, with their axis labels.
 COLUMNS: dict[str, str] = {

@@ -10,7 +10,8 @@ pretrained on demand, 3-4 min each, cached under ``--pretrained``), the one-step
 MSE (m²) by the number of detections n in the window, for windows whose target is detected
 at their last step (what a drone with ``detected_only`` sends) and for all windows (what
 Table I's prediction error averages; ``pretraining.detection_gaps = "auto"`` chooses on the
-same figure, over all windows, on a recording with seed 1001). Writes a plot of the same beside the recording::
+same figure, over all windows, on a recording with seed 1001). Writes a plot of the same
+beside the recording::
 
     python examples/window_coverage.py --scenario case2 --seed 10 --gaps 0 0.3 \\
         --out runs/gaps/coverage

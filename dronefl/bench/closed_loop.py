@@ -42,10 +42,10 @@ def speed(what: str, metrics: EpisodeMetrics, call_seconds: float) -> EpisodeSpe
 
 
 def bench_closed_loop(
-    scenario: Scenario, out: Path, duration: float, pretrained: Path
+    scenario: Scenario, out: Path, duration: float, pretrained: Path, setting: Setting
 ) -> Benchmarks:
-    """Run the ``fixed``, ``dronefl`` and ``dronefl`` with fp16 weights episodes of ``scenario``,
-    ``duration`` s into ``out/fixed``, ``out/dronefl``, ``out/dronefl_fp16``:
+    """Run the ``fixed``, ``dronefl`` and ``dronefl`` with fp16 weights episodes of ``scenario``
+    in ``setting``, ``duration`` s into ``out/fixed``, ``out/dronefl``, ``out/dronefl_fp16``:
 
     * ``closed_loop``: DroneFL's real-time factor (x) over the episode's loop, with the fixed
       episode as reference and ``ratio`` = fixed wall time / DroneFL wall time;
@@ -54,7 +54,6 @@ def bench_closed_loop(
       weights (:func:`dronefl.bench.bandwidth.dronefl_comm`).
     """
     metrics, calls = {}, {}
-    setting = Setting.load()
     period = setting.learning.period
     runs = {"fixed": ("fixed", "float32"), "dronefl": ("dronefl", "float32"),
             "dronefl_fp16": ("dronefl", "float16")}  # fmt: skip

@@ -28,6 +28,7 @@ from dronefl.bench.results import BenchEnergy, Benchmarks, BenchResults, BenchSi
 from dronefl.config import Scenario, load_scenario
 from dronefl.io import atomic_write_text
 from dronefl.serialize import save_result
+from dronefl.settings import Setting
 
 SCHEMA_VERSION = 1
 
@@ -62,6 +63,7 @@ class BenchContext:
     pretrained: Path
     meter: EnergyMeter | None
     scenario: Scenario
+    setting: Setting
 
 
 def _predictor(ctx: BenchContext) -> Benchmarks:
@@ -97,7 +99,11 @@ GROUPS: dict[str, Callable[[BenchContext], Benchmarks]] = {
     "predictor": _predictor,
     "vision": _vision,
     "closed_loop": lambda ctx: closed_loop.bench_closed_loop(
-        ctx.scenario, ctx.work / "closed_loop", ctx.sizes.episode_seconds, ctx.pretrained
+        ctx.scenario,
+        ctx.work / "closed_loop",
+        ctx.sizes.episode_seconds,
+        ctx.pretrained,
+        ctx.setting,
     ),
 }
 
@@ -124,14 +130,15 @@ def run_bench(
     progress: bool = True,
     sizes: BenchSizes | None = None,
     scenario: Scenario | None = None,
+    setting: Setting | None = None,
 ) -> BenchResults:
     """Run the benchmark groups ``only`` (default: all) and write ``out/bench.json`` and
     ``out/bench.md``; returns what ``bench.json`` holds.
 
     ``quick`` uses :data:`QUICK` sizes (``sizes`` overrides both). Closed-loop episodes go to
     ``out/closed_loop/<method>/``; pretrained models are taken from (or trained into)
-    ``pretrained``. One line per figure is printed to stderr as it is measured unless
-    ``progress`` is False.
+    ``pretrained``; the closed loop flies ``setting`` (default: the recommended one). One line
+    per figure is printed to stderr as it is measured unless ``progress`` is False.
     """
     groups = check_inputs(out, only, pretrained)
     out = Path(out)
@@ -139,7 +146,9 @@ def run_bench(
     sizes = sizes or (QUICK if quick else FULL)
     console = Console(stderr=True, quiet=not progress)
     scenario = scenario or load_scenario("case3")
-    ctx = BenchContext(sizes, out, Path(pretrained), rapl_meter(), scenario)
+    ctx = BenchContext(
+        sizes, out, Path(pretrained), rapl_meter(), scenario, setting or Setting.load()
+    )
     started, wall, load = time.strftime("%Y-%m-%d %H:%M:%S %Z"), time.perf_counter(), load_average()
     benchmarks = Benchmarks()
     for group in groups:

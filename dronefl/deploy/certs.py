@@ -5,7 +5,8 @@ One CA signs everything; each file is named by who holds it::
     ca.crt, ca.key             the CA (ca.key stays with the operator)
     superlink.crt/.key         the SuperLink's TLS identity (HTTPS)
     zenoh-<role>.crt/.key      each process's Zenoh TLS identity (mutual TLS), role in
-                               world, cloud, launcher, drone-<id>
+                               world, cloud, launcher, drone-<id>: its common name, by
+                               which the others' access control knows it
     supernode-<id>, .pub       each drone's SuperNode key pair (OpenSSH, NIST P-384): the
                                SuperLink admits only SuperNodes whose public key is registered
 
@@ -26,7 +27,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from dronefl.deploy.link import LinkTls
+from dronefl.deploy.link import LinkTls, roles
 from dronefl.io import atomic_write_bytes
 
 DEFAULT_HOSTS = ("127.0.0.1", "localhost")
@@ -49,9 +50,10 @@ class CertificateFolder:
         return self.folder / "superlink.crt", self.folder / "superlink.key"
 
     def zenoh(self, role: str) -> LinkTls:
-        """The Zenoh TLS identity of ``role`` (``world``, ``cloud``, ``drone-<id>``)."""
+        """The Zenoh TLS identity of ``role`` (``world``, ``cloud``, ``launcher``,
+        ``drone-<id>``)."""
         return LinkTls(
-            self.ca, self.folder / f"zenoh-{role}.crt", self.folder / f"zenoh-{role}.key"
+            self.ca, self.folder / f"zenoh-{role}.crt", self.folder / f"zenoh-{role}.key", role
         )
 
     def supernode_key(self, drone_id: int) -> Path:
@@ -71,8 +73,15 @@ def make_certificates(
     folder: Path, drone_ids: Sequence[int], hosts: Sequence[str] = DEFAULT_HOSTS
 ) -> CertificateFolder:
     """Write a CA, the SuperLink's and every process's certificates, and one SuperNode key
-    pair per drone into ``folder``."""
+    pair per drone into ``folder``; ``ValueError`` if ``folder`` (or the nearest of its
+    parents that exists) is a file."""
     folder = Path(folder)
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        where = "" if existing == folder else f"{folder}: "
+        raise ValueError(f"{where}{existing} is a file, not a folder")
     ca_key = ec.generate_private_key(ec.SECP256R1())
     ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "DroneFL deployment CA")])
     now = dt.datetime.now(dt.UTC)
@@ -104,9 +113,8 @@ def make_certificates(
     out = CertificateFolder(folder)
     _write_key(folder / "ca.key", ca_key)
     atomic_write_bytes(out.ca, ca.public_bytes(serialization.Encoding.PEM))
-    roles = ["world", "cloud", "launcher", *(f"drone-{d}" for d in drone_ids)]
     leaves = [("superlink", *out.superlink)] + [
-        (role, out.zenoh(role).certificate, out.zenoh(role).key) for role in roles
+        (role, out.zenoh(role).certificate, out.zenoh(role).key) for role in roles(drone_ids)
     ]
     for name, cert_path, key_path in leaves:
         key = ec.generate_private_key(ec.SECP256R1())
@@ -137,7 +145,8 @@ def _leaf(
     hosts: Sequence[str],
     now: dt.datetime,
 ) -> x509.Certificate:
-    """A certificate for ``name`` valid as TLS server and client for every host in ``hosts``."""
+    """A certificate whose common name is ``name``, valid as TLS server and client for every
+    host in ``hosts``."""
     names: list[x509.GeneralName] = []
     for host in hosts:
         try:
@@ -146,7 +155,7 @@ def _leaf(
             names.append(x509.DNSName(host))
     return (
         x509.CertificateBuilder()
-        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, f"dronefl-{name}")]))
+        .subject_name(x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, name)]))
         .issuer_name(ca.subject)
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())

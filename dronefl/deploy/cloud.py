@@ -41,6 +41,7 @@ from dronefl.deploy.certs import CertificateFolder
 from dronefl.deploy.clientapp import load_model
 from dronefl.deploy.grid import DroneGrid
 from dronefl.deploy.link import (
+    CLOUD,
     CONTROL,
     FLUSH,
     NODE,
@@ -50,6 +51,7 @@ from dronefl.deploy.link import (
     TELEMETRY,
     Link,
     LinkConfig,
+    check_endpoint,
 )
 from dronefl.deploy.messages import LabelsMessage, TelemetryMessage, encode_release
 from dronefl.deploy.results import CloudLog, DeployedRound, TrafficCount
@@ -68,8 +70,11 @@ from dronefl.wire import (
     split_uplink,
 )
 
-#: How long a round waits for a live drone's SuperNode to connect (a restarted drone), s.
-SUPERNODE_JOIN_S = 30.0
+#: How long a round waits for a live drone's SuperNode to join, s: a restarted drone flies
+#: before its new SuperNode has joined, and with SuperNode authentication the SuperLink admits
+#: that SuperNode only once the killed one's key is free again, up to 2 missed heartbeats of
+#: 30 s after the kill (Flower 1.41), then at the drone's next retry (every 8 s at most).
+SUPERNODE_JOIN_S = 75.0
 
 _PREFIX = "deploy-"
 
@@ -85,8 +90,8 @@ class CloudSettings:
     :func:`~dronefl.deploy.clientapp.save_model`); ``out`` where ``cloud.npz`` /
     ``cloud.json`` go; ``deadline_ms`` wall ms the cloud waits for a step's predictions;
     ``listen`` / ``connect`` its Zenoh endpoints; ``tls_dir`` the certificate folder (empty:
-    no TLS); ``start_timeout`` s for the world, the drones and their SuperNodes to appear;
-    ``round_timeout`` s for one FL message exchange.
+    plain TCP, no authentication); ``start_timeout`` s for the world, the drones and their
+    SuperNodes to appear; ``round_timeout`` s for one FL message exchange.
     """
 
     scenario: str
@@ -111,16 +116,18 @@ class CloudSettings:
         for name in ("duration", "deadline_ms", "start_timeout", "round_timeout"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"--{name.replace('_', '-')}: must be positive")
+        check_endpoint(self.listen, "--listen")
+        check_endpoint(self.connect, "--connect")
 
     @property
     def resolved(self) -> Setting:
         """The episode's setting."""
         return Setting.from_toml(self.setting, "deployed")
 
-    @property
-    def link(self) -> LinkConfig:
-        tls = CertificateFolder(Path(self.tls_dir)).zenoh("cloud") if self.tls_dir else None
-        return LinkConfig((self.listen,), (self.connect,), tls)
+    def link(self, drone_ids: tuple[int, ...]) -> LinkConfig:
+        """The cloud's link in a deployment flying ``drone_ids``."""
+        tls = CertificateFolder(Path(self.tls_dir)).zenoh(CLOUD) if self.tls_dir else None
+        return LinkConfig((self.listen,), (self.connect,), tls, drone_ids)
 
     def to_run_config(self) -> dict[str, str | float]:
         """The settings as the ServerApp's run config (``pyproject.toml`` declares each key)."""
@@ -237,11 +244,12 @@ class CloudEpisode:
 
     def run(self) -> None:
         s = self.settings
-        with Link(s.link) as link:
+        with Link(s.link(self.scenario.drone_ids)) as link:
             self.link = link
             link.watch_alive()
             link.subscribe(TELEMETRY, self._on_telemetry)
-            link.subscribe(PREDICTIONS.format(id="*"), self._on_prediction)
+            for d in self.scenario.drone_ids:  # one key per drone: each may put on its own only
+                link.subscribe(PREDICTIONS.format(id=d), self._on_prediction)
             log(INFO, "cloud: waiting for the world, the drones and their SuperNodes")
             self._wait_for_peers()
             link.announce("cloud")
@@ -383,8 +391,8 @@ class CloudEpisode:
                 ready.append(drone_id)
                 self.counter.add(drone_id, "down", "labels", len(payload))
         absent = self._refresh_nodes(ready)
-        # A drone that came back (restarted) is live before its new SuperNode has reached the
-        # SuperLink (which polls every few seconds): wait a little for it rather than leave it out.
+        # A drone that came back (restarted) is live before its new SuperNode has joined the
+        # SuperLink: wait for it (SUPERNODE_JOIN_S) rather than leave it out.
         deadline = time.monotonic() + SUPERNODE_JOIN_S
         while absent and time.monotonic() < deadline:
             time.sleep(1.0)

@@ -8,12 +8,13 @@ so that the cloud need not wait for it); the cloud's control
 (:class:`~dronefl.wire.ControlMessage`) it hands on to its autopilot (the world).
 
 Beside it runs its Flower SuperNode (``flower-supernode``, a child process), whose node
-config names the drone and its data folder; the drone tells the cloud (Zenoh query ``node``)
-which node id the SuperLink gave it, so that a round is sent to the SuperNodes of the live
-drones only. Before an FL round the cloud asks the drone
-(Zenoh query ``flush``) to write its onboard record and the round's pseudo-labels there; after
-the round the ClientApp has written the new global model there, and the cloud asks the drone
-(``reload``) to load it into its predictor.
+config names the drone and its data folder; the drone flies while the SuperNode joins the
+SuperLink (:class:`SuperNodeJoin`) and tells the cloud (Zenoh query ``node``) which node id
+the SuperLink gave it, so that a round is sent to the SuperNodes of the live drones only.
+Before an FL round the cloud asks the drone (Zenoh query ``flush``) to write its onboard
+record and the round's pseudo-labels there; after the round the ClientApp has written the
+new global model there, and the cloud asks the drone (``reload``) to load it into its
+predictor.
 
 The drone ends when the world does (its liveliness goes), writing its record a last time.
 """
@@ -47,6 +48,8 @@ from dronefl.deploy.link import (
     SENSE,
     Link,
     LinkConfig,
+    check_endpoint,
+    drone_role,
 )
 from dronefl.deploy.messages import LabelsMessage, SenseMessage
 from dronefl.deploy.processes import Child, Children, DeployError, port_open, wait_for
@@ -70,8 +73,9 @@ class DroneSettings:
     ``[drone]`` sub-config, :class:`~dronefl.roles.DroneNode`); ``connect`` the Zenoh
     endpoints of the world and the cloud (``host:port``); ``superlink`` the SuperLink's
     ``host:port``; ``runtime_port`` the port of this SuperNode's local ClientApp API;
-    ``tls_dir`` the certificate folder (empty: no TLS; else also SuperNode authentication
-    with this drone's key); ``start_timeout`` s to wait for the world and the SuperLink.
+    ``tls_dir`` the certificate folder (empty: plain TCP and no authentication; else also
+    SuperNode authentication with this drone's key); ``start_timeout`` s to wait for the
+    world and the SuperLink.
     """
 
     scenario: str
@@ -85,11 +89,20 @@ class DroneSettings:
     tls_dir: str = ""
     start_timeout: float = 120.0
 
+    def __post_init__(self) -> None:
+        if not self.connect:
+            raise ValueError("--connect: give the world's and the cloud's host:port")
+        for endpoint in self.connect:
+            check_endpoint(endpoint, "--connect")
+        check_endpoint(self.superlink, "--superlink")
+        if not 1 <= self.runtime_port <= 65535:
+            raise ValueError(f"--runtime-port: {self.runtime_port} is not a port (1-65535)")
+
     @property
     def link(self) -> LinkConfig:
         certs = CertificateFolder(Path(self.tls_dir)) if self.tls_dir else None
-        tls = certs.zenoh(f"drone-{self.drone_id}") if certs else None
-        return LinkConfig((), self.connect, tls)
+        tls = certs.zenoh(drone_role(self.drone_id)) if certs else None
+        return LinkConfig((), self.connect, tls, (self.drone_id,))
 
 
 class DroneProcess:
@@ -197,8 +210,8 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
             settings.start_timeout,
             f"the SuperLink at {settings.superlink} (unreachable)",
         )
-        supernode = _start_supernode(settings, children)
-        info = _episode(link, settings)
+        supernode = SuperNodeJoin(settings, children)
+        info = _episode(link, settings, supernode)
         drone = DroneProcess(settings, info, predictor)
         _serve(link, drone, supernode)
         link.watch_alive()
@@ -209,49 +222,78 @@ def run_drone(settings: DroneSettings, logs: Path) -> None:
         _loop(link, drone, supernode)
 
 
-def _start_supernode(settings: DroneSettings, children: Children) -> Child:
-    """Start the SuperNode and wait until the SuperLink has admitted it (it logs its node
-    id). One that exits first (say, it connected before the cloud registered its key) is
-    started again after 1, 2, 4, 8, 8, ... s while that still falls within ``start_timeout``;
-    then the SuperLink's refusal is the error."""
-    certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
-    command = supernode_command(
-        settings.drone_id, settings.data_dir, settings.superlink, settings.runtime_port,
-        settings.start_timeout, certs,
-    )  # fmt: skip
-    env = flower_env(Path(settings.data_dir) / "flwr")
-    print(f"drone {settings.drone_id}: {shlex.join(command)}", flush=True)
-    deadline = time.monotonic() + settings.start_timeout
-    name = f"supernode-{settings.drone_id}"
-    refused = None  # why the SuperLink turned the attempts away
-    pause = 1.0  # s before the next attempt, doubled up to 8 s
-    while True:
-        supernode = children.start(name, command, env)
-        while supernode.process.poll() is None and not supernode_id(supernode):
-            if time.monotonic() > deadline:
-                if refused is not None:
-                    raise DeployError(
-                        f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
-                    )
+class SuperNodeJoin:
+    """The drone's SuperNode, joining the SuperLink while the drone flies: each call of
+    :meth:`tend` moves the join on without waiting.
+
+    The SuperNode has joined once the SuperLink has admitted it (it logs its node id). One
+    that exits first is started again after 1, 2, 4, 8, 8, ... s while that still falls within
+    ``start_timeout``; then the SuperLink's refusal is the error. Refusals are expected for a
+    while: before the cloud has registered the drone's key, and, with SuperNode
+    authentication, after a restart, until the SuperLink lets go of the killed SuperNode's
+    key (two missed 30 s heartbeats, Flower 1.41). The drone flies meanwhile, and the cloud
+    leaves it out of the rounds until it has joined."""
+
+    def __init__(self, settings: DroneSettings, children: Children) -> None:
+        certs = CertificateFolder(Path(settings.tls_dir)) if settings.tls_dir else None
+        self.command = supernode_command(
+            settings.drone_id, settings.data_dir, settings.superlink, settings.runtime_port,
+            settings.start_timeout, certs,
+        )  # fmt: skip
+        self.env = flower_env(Path(settings.data_dir) / "flwr")
+        self.settings = settings
+        self.children = children
+        self.deadline = time.monotonic() + settings.start_timeout
+        self.refused: str | None = None  # why the SuperLink turned the attempts away
+        self.pause = 1.0  # s before the next attempt, doubled up to 8 s
+        self.retry_at: float | None = None  # when the next attempt starts
+        self.node = b""  # the node id the SuperLink gave it, once admitted
+        print(f"drone {settings.drone_id}: {shlex.join(self.command)}", flush=True)
+        self.child = self._start()
+
+    def _start(self) -> Child:
+        return self.children.start(f"supernode-{self.settings.drone_id}", self.command, self.env)
+
+    def tend(self) -> None:
+        """Note the node id once the SuperNode has one, start a refused SuperNode again when
+        its pause is over; :class:`DeployError` when the join failed or a joined SuperNode
+        exited."""
+        now = time.monotonic()
+        if self.node:
+            if self.child.process.poll() is not None:
                 raise DeployError(
-                    f"the SuperNode did not join the SuperLink at {settings.superlink} within "
-                    f"{settings.start_timeout:.0f} s"
+                    f"the SuperNode exited with code {self.child.process.returncode}: "
+                    f"{self.child.last_line()}"
                 )
-            time.sleep(0.2)
-        if supernode.process.poll() is None:
-            return supernode
-        refused = _refusal(supernode.output(), refused)
-        if time.monotonic() + pause > deadline:  # the next attempt would start too late
-            raise DeployError(
-                f"the SuperLink at {settings.superlink} refused the SuperNode: {refused}"
-            )
-        print(
-            f"drone {settings.drone_id}: SuperNode not admitted ({refused}); retrying in "
-            f"{pause:.0f} s",
-            flush=True,
+            return
+        if self.child.process.poll() is None:
+            self.node = supernode_id(self.child)
+        elif self.retry_at is None:  # it has just exited: refused
+            self.refused = _refusal(self.child.output(), self.refused)
+            self.retry_at = now + self.pause
+            if self.retry_at <= self.deadline:
+                print(
+                    f"drone {self.settings.drone_id}: SuperNode not admitted ({self.refused}); "
+                    f"retrying in {self.pause:.0f} s",
+                    flush=True,
+                )
+            self.pause = min(2 * self.pause, 8.0)
+        elif now >= self.retry_at:
+            self.retry_at = None
+            self.child = self._start()
+        too_late = self.retry_at is not None and self.retry_at > self.deadline
+        if not self.node and (now > self.deadline or too_late):
+            raise DeployError(self.failure())
+
+    def failure(self) -> str:
+        """Why the SuperNode has not joined (the SuperLink's refusal, if it gave one)."""
+        s = self.settings
+        if self.refused is not None:
+            return f"the SuperLink at {s.superlink} refused the SuperNode: {self.refused}"
+        return (
+            f"the SuperNode did not join the SuperLink at {s.superlink} within "
+            f"{s.start_timeout:.0f} s"
         )
-        time.sleep(pause)
-        pause = min(2 * pause, 8.0)
 
 
 #: A SuperNode's line that says the SuperLink turned it away (its key, its certificate).
@@ -273,15 +315,18 @@ def _refusal(output: str, earlier: str | None = None) -> str:
     return (failures or lines or ["(no output)"])[-1]
 
 
-def _episode(link: Link, settings: DroneSettings) -> dict:
-    """What the world simulates (asked until it answers)."""
+def _episode(link: Link, settings: DroneSettings, supernode: SuperNodeJoin) -> dict:
+    """What the world simulates (asked until it answers; the SuperNode tended meanwhile)."""
     timeout = settings.start_timeout
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
+        supernode.tend()
         answer = link.request(EPISODE, timeout=1.0)
         if answer:
             return json.loads(answer)
         time.sleep(0.2)
+    if supernode.refused is not None:  # the SuperLink's refusal says more than the silence
+        raise DeployError(supernode.failure())
     hint = " (are both certificates signed by the same CA?)" if settings.tls_dir else ""
     raise DeployError(
         f"the world at {settings.connect[0]} did not answer within {timeout:.0f} s{hint}"
@@ -295,7 +340,7 @@ def supernode_id(supernode: Child) -> bytes:
     return found[-1].encode() if found else b""
 
 
-def _serve(link: Link, drone: DroneProcess, supernode: Child) -> None:
+def _serve(link: Link, drone: DroneProcess, supernode: SuperNodeJoin) -> None:
     d = drone.settings.drone_id
 
     def forward(_: str, payload: bytes) -> None:  # cloud's control -> autopilot
@@ -305,21 +350,17 @@ def _serve(link: Link, drone: DroneProcess, supernode: Child) -> None:
     link.subscribe(CONTROL.format(id=d), forward)
     link.serve(FLUSH.format(id=d), drone.flush)
     link.serve(RELOAD.format(id=d), drone.reload)
-    link.serve(NODE.format(id=d), lambda _: supernode_id(supernode))
+    link.serve(NODE.format(id=d), lambda _: supernode.node)  # empty until it has joined
 
 
-def _loop(link: Link, drone: DroneProcess, supernode: Child) -> None:
+def _loop(link: Link, drone: DroneProcess, supernode: SuperNodeJoin) -> None:
     key = PREDICTIONS.format(id=drone.settings.drone_id)
     try:
         while True:
+            supernode.tend()
             try:
                 payload = drone.sensed.get(timeout=0.5)
             except queue.Empty:
-                if supernode.process.poll() is not None:
-                    raise DeployError(
-                        f"the SuperNode exited with code {supernode.process.returncode}: "
-                        f"{supernode.last_line()}"
-                    ) from None
                 if "world" not in link.alive():
                     print(f"drone {drone.settings.drone_id}: the world ended", flush=True)
                     return

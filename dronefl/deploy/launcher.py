@@ -10,6 +10,11 @@ processes, and when the world and the cloud have finished writes ``<out>/metrics
 Every process it started is stopped when it returns, fails or is interrupted
 (:class:`~dronefl.deploy.processes.Children`).
 
+Secure unless ``insecure``: every Zenoh link is mutual TLS with access control by role
+(:mod:`dronefl.deploy.link`), the SuperLink serves HTTPS and admits only the drones'
+registered SuperNode keys, all from the certificate folder given or a fresh one in
+``<out>/certs``.
+
 Ports (``base_port`` B, all on 127.0.0.1): world Zenoh B, cloud Zenoh B+1, SuperLink B+2,
 drone i's SuperNode runtime API B+10+i.
 """
@@ -28,7 +33,7 @@ import torch
 from dronefl.config import ENVIRONMENTS, Scenario, load_scenario
 from dronefl.deploy import check_deploy_method
 from dronefl.deploy.certs import CertificateFolder, make_certificates
-from dronefl.deploy.link import Link, LinkConfig
+from dronefl.deploy.link import LAUNCHER, Link, LinkConfig, roles
 from dronefl.deploy.processes import Child, Children, DeployError, marked, port_in_use, wait_for
 from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metrics
 from dronefl.io import atomic_write_text
@@ -45,11 +50,11 @@ SETTING_FILE = "setting.toml"
 class DeployConfig:
     """One deployed episode on this machine (see ``dronefl deploy up --help``): ``scenario``
     flown for ``duration`` s in ``environment`` by ``method`` as ``setting`` says, seeded by
-    ``seed``; ``out`` the episode folder; ``tls`` with certificates from ``certs`` (default:
-    a fresh folder in ``out``); ``base_port`` the first of its ports; ``deadline_ms`` the
-    wall ms the cloud waits for a step's predictions; ``start_timeout`` s for the processes
-    to come up; ``pretrained`` the cache of pretrained models; ``restart_drones`` restarts a
-    drone that dies."""
+    ``seed``; ``out`` the episode folder; secure with the certificates of ``certs`` (default:
+    a fresh folder in ``out``) unless ``insecure`` (plain TCP, no authentication);
+    ``base_port`` the first of its ports; ``deadline_ms`` the wall ms the cloud waits for a
+    step's predictions; ``start_timeout`` s for the processes to come up; ``pretrained`` the
+    cache of pretrained models; ``restart_drones`` restarts a drone that dies."""
 
     scenario: str
     out: Path
@@ -58,7 +63,7 @@ class DeployConfig:
     duration: float = 120.0
     seed: int = 0
     environment: str = "orchard"
-    tls: bool = False
+    insecure: bool = False
     certs: Path | None = None
     base_port: int = 7440
     deadline_ms: float = 150.0
@@ -82,6 +87,10 @@ class DeployConfig:
             raise ValueError(f"--seed: must be in [0, 2^32), got {self.seed}")
         if not 1024 <= self.base_port <= 65000:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
+        if self.insecure and self.certs is not None:
+            raise ValueError("--certs: an --insecure deployment uses no certificates")
+        if self.pretrained.exists() and not self.pretrained.is_dir():
+            raise ValueError(f"--pretrained: {self.pretrained} is a file, not a folder")
 
     def ports(self, scenario: Scenario) -> dict[str, int]:
         """Every port of the deployment, by what listens there."""
@@ -118,7 +127,7 @@ def preflight(config: DeployConfig) -> Scenario:
     for what, port in config.ports(scenario).items():
         if port_in_use(HOST, port):
             raise DeployError(f"port {port} ({what}) is already in use; pick another --base-port")
-    if config.tls and config.certs is not None:
+    if config.certs is not None:
         _given_certificates(config.certs, scenario)
     return scenario
 
@@ -134,14 +143,17 @@ def run_deploy(
     out = config.out.resolve()
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
-    certs = _certificates(config, scenario, out) if config.tls else None
+    certs = None if config.insecure else _certificates(config, scenario, out)
     model_path = model_file(state, model, out)
     atomic_write_text(out / SETTING_FILE, config.setting.to_toml())
     started = time.perf_counter()
     with Children(logs) as children:
-        tls = certs.zenoh("launcher") if certs else None
+        tls = certs.zenoh(LAUNCHER) if certs else None
         link_config = LinkConfig(
-            (), (f"{HOST}:{ports['world Zenoh']}", f"{HOST}:{ports['cloud Zenoh']}"), tls
+            (),
+            (f"{HOST}:{ports['world Zenoh']}", f"{HOST}:{ports['cloud Zenoh']}"),
+            tls,
+            scenario.drone_ids,
         )
         commands = _commands(config, scenario, model_path, certs, out)
         cloud = children.start("cloud", commands["cloud"])
@@ -187,16 +199,18 @@ def _certificates(config: DeployConfig, scenario: Scenario, out: Path) -> Certif
 
 
 def _given_certificates(folder: Path, scenario: Scenario) -> CertificateFolder:
-    """The certificate folder ``folder``, every file of the scenario's roles checked."""
+    """The certificate folder ``folder``, every file of the scenario's roles checked, and
+    every Zenoh certificate's common name (its role, by which access control knows it)."""
     certs = CertificateFolder(folder.resolve())
-    roles = ["world", "cloud", "launcher", *(f"drone-{d}" for d in scenario.drone_ids)]
+    identities = [certs.zenoh(role) for role in roles(scenario.drone_ids)]
     paths = [certs.ca, *certs.superlink]
-    for role in roles:
-        identity = certs.zenoh(role)
+    for identity in identities:
         paths += [identity.certificate, identity.key]
     for d in scenario.drone_ids:
         paths += [certs.supernode_key(d), certs.supernode_public_key(d)]
     certs.check(paths)
+    for identity in identities:
+        identity.check()
     return certs
 
 
@@ -210,9 +224,10 @@ def _commands(
     ports = config.ports(scenario)
     world_at, cloud_at = f"{HOST}:{ports['world Zenoh']}", f"{HOST}:{ports['cloud Zenoh']}"
     superlink = f"{HOST}:{ports['SuperLink']}"
-    tls = ["--tls-dir", str(certs.folder)] if certs else []
+    security = ["--tls-dir", str(certs.folder)] if certs else ["--insecure"]
     base = [sys.executable, "-m", "dronefl.cli"]
-    common = ["--scenario", config.scenario, "--start-timeout", str(config.start_timeout), *tls]
+    common = ["--scenario", config.scenario, "--start-timeout", str(config.start_timeout)]
+    common += security
     setting = ["--setting", str(out / SETTING_FILE)]
     commands = {
         "cloud": [

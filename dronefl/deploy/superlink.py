@@ -28,6 +28,7 @@ from dronefl.deploy.flower import (
     superlink_command,
     write_connection,
 )
+from dronefl.deploy.link import CLOUD
 from dronefl.deploy.processes import Children, DeployError, port_in_use, port_open, wait_for
 from dronefl.fl.records import FlSettings
 
@@ -54,6 +55,7 @@ def run_cloud(cloud: CloudSettings, fl: FlSettings, link: SuperLinkSettings, log
             [certs.ca, *certs.superlink]
             + [certs.supernode_public_key(d) for d in scenario.drone_ids]
         )
+        certs.zenoh(CLOUD).check()  # the ServerApp's, checked before the SuperLink starts
     flwr_home = out / "flwr"
     env = flower_env(flwr_home)
     result = out / "cloud.json"

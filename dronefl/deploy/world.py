@@ -25,7 +25,17 @@ import numpy as np
 
 from dronefl.config import load_scenario
 from dronefl.deploy.certs import CertificateFolder
-from dronefl.deploy.link import ACTUATE, EPISODE, RELEASE, SENSE, TELEMETRY, Link, LinkConfig
+from dronefl.deploy.link import (
+    ACTUATE,
+    EPISODE,
+    RELEASE,
+    SENSE,
+    TELEMETRY,
+    WORLD,
+    Link,
+    LinkConfig,
+    check_endpoint,
+)
 from dronefl.deploy.messages import SenseMessage, TelemetryMessage, decode_release
 from dronefl.io import atomic_savez
 from dronefl.perception import make_detector
@@ -42,8 +52,9 @@ class WorldSettings:
     """One simulated episode: ``duration`` s of ``scenario`` in ``environment`` with ``seed``.
 
     ``listen`` the Zenoh endpoint (``host:port``); ``tls_dir`` the certificate folder (empty:
-    no TLS); ``start_timeout`` s to wait for the cloud; ``stall_timeout`` s one step may take
-    (an FL round included); ``grace_ms`` wall ms a control may trail the cloud's release.
+    plain TCP, no authentication); ``start_timeout`` s to wait for the cloud;
+    ``stall_timeout`` s one step may take (an FL round included); ``grace_ms`` wall ms a
+    control may trail the cloud's release.
     """
 
     scenario: str
@@ -57,10 +68,13 @@ class WorldSettings:
     stall_timeout: float = 600.0
     grace_ms: float = 150.0
 
-    @property
-    def link(self) -> LinkConfig:
-        tls = CertificateFolder(Path(self.tls_dir)).zenoh("world") if self.tls_dir else None
-        return LinkConfig((self.listen,), (), tls)
+    def __post_init__(self) -> None:
+        check_endpoint(self.listen, "--listen")
+
+    def link(self, drone_ids: tuple[int, ...]) -> LinkConfig:
+        """The world's link in a deployment flying ``drone_ids``."""
+        tls = CertificateFolder(Path(self.tls_dir)).zenoh(WORLD) if self.tls_dir else None
+        return LinkConfig((self.listen,), (), tls, drone_ids)
 
 
 class _Mailbox:
@@ -113,10 +127,11 @@ def run_world(settings: WorldSettings) -> Path:
         }
     ).encode()
     mailbox = _Mailbox()
-    with Link(settings.link) as link:
+    with Link(settings.link(ids)) as link:
         link.watch_alive()
         link.subscribe(RELEASE, mailbox.on_release)
-        link.subscribe(ACTUATE.format(id="*"), mailbox.on_control)
+        for d in ids:  # one key per drone: each drone may put on its own only
+            link.subscribe(ACTUATE.format(id=d), mailbox.on_control)
         link.announce("world")
         link.serve(EPISODE, lambda _: info)
         print(f"world: {scenario.name}, {n_steps} steps; waiting for the cloud", flush=True)

@@ -35,6 +35,9 @@ T = TypeVar("T")
 # Ray starts its workers at nice 15 by default, so on a shared machine a federated run starves
 # behind any other work; they run at the priority of the command that started them instead.
 os.environ.setdefault("RAY_worker_niceness", "0")
+# Ray's failure signal handler takes over SIGTERM in every process that starts Ray and dumps
+# core on it (exit -6); without it, SIGTERM stops a run as Ctrl-C does (``dronefl.cli``).
+os.environ.setdefault("RAY_DISABLE_FAILURE_SIGNAL_HANDLER", "1")
 # When a run is killed (SIGKILL, OOM), Ray's dashboard and runtime-env agents report the dead
 # raylet to the GCS, which died with it, and wait for it as long as a GCS client waits to
 # reconnect: 60 s by default (measured: 61.7 s; with 20, 20.1 s). Every other process of the
@@ -85,16 +88,21 @@ def _terminate(backend: Backend) -> None:
 
 @contextmanager
 def _interruptible_backend() -> Iterator[None]:
-    """While open, Flower's Ray backend terminates through :func:`_terminate`. Ray is
-    imported here, after this module has set Ray's environment variables."""
+    """While open, Flower's Ray backend terminates through :func:`_terminate`, and
+    ``ray.init`` keeps the process's SIGTERM handler (Ray's would end the process at once,
+    with code 15, instead of stopping the run as Ctrl-C does). Ray is imported here, after
+    this module has set Ray's environment variables."""
+    import ray._private.utils as ray_utils
     from flwr.server.superlink.fleet.vce.backend.raybackend import RayBackend
 
-    stock = RayBackend.terminate
+    stock_terminate, stock_handler = RayBackend.terminate, ray_utils.set_sigterm_handler
     RayBackend.terminate = _terminate  # type: ignore[method-assign]
+    ray_utils.set_sigterm_handler = lambda _handler: None
     try:
         yield
     finally:
-        RayBackend.terminate = stock  # type: ignore[method-assign]
+        RayBackend.terminate = stock_terminate  # type: ignore[method-assign]
+        ray_utils.set_sigterm_handler = stock_handler
 
 
 def _run_engine(**kwargs: object) -> None:

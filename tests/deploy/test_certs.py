@@ -1,5 +1,5 @@
 """The certificates of a secure deployment: one CA signs every identity, SuperNode keys are
-the OpenSSH NIST-EC keys Flower reads."""
+the OpenSSH NIST-EC keys Flower reads, each Zenoh certificate names its role."""
 
 import ipaddress
 
@@ -8,6 +8,7 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.hazmat.primitives.serialization import load_ssh_private_key, load_ssh_public_key
 
 from dronefl.deploy.certs import make_certificates
+from dronefl.deploy.link import common_name
 
 
 def test_every_certificate_is_signed_by_the_ca_and_names_the_hosts(tmp_path):
@@ -23,6 +24,13 @@ def test_every_certificate_is_signed_by_the_ca_and_names_the_hosts(tmp_path):
         assert ipaddress.ip_address("127.0.0.1") in names.get_values_for_type(x509.IPAddress)
         assert "cloud.local" in names.get_values_for_type(x509.DNSName)
     assert (tmp_path / "ca.key").stat().st_mode & 0o077 == 0  # private keys: owner only
+
+
+def test_each_zenoh_certificate_names_its_role(tmp_path):
+    # The other processes' access control knows each process by its certificate's common name.
+    certs = make_certificates(tmp_path, [1, 2])
+    for role in ("world", "cloud", "launcher", "drone-1", "drone-2"):
+        assert common_name(certs.zenoh(role).certificate) == role
 
 
 def test_supernode_keys_are_openssh_p384_pairs(tmp_path):

@@ -41,8 +41,9 @@ def _fly(tmp_path, **options):
         build_model(PretrainSpec(scenario, setting).model, seed=0), runtime="torch"
     )
     settings = DroneSettings(
-        "case2", drone_id, tmp_path / "model.npz", tmp_path, setting, (), "127.0.0.1:1", 1
-    )
+        "case2", drone_id, tmp_path / "model.npz", tmp_path, setting, ("127.0.0.1:1",),
+        "127.0.0.1:2", 3,
+    )  # fmt: skip
     info = {"dt": scenario.dt, "scenario": "case2", "environment": "orchard", "seed": 0,
             "steps": STEPS}  # fmt: skip
     drone = DroneProcess(settings, info, predictor)

@@ -1,5 +1,6 @@
-"""Ctrl-C in the middle of a federated run ends `dronefl` promptly with exit code 130 and one
-line, every process it started exits, and `--resume` can go on from what was written.
+"""Ctrl-C (SIGTERM) in the middle of a federated run ends `dronefl` promptly with exit code 130
+(143) and one line, every process it started exits, and `--resume` can go on from what was
+written.
 
 Flower's simulation engine, interrupted, stops Ray but leaves its worker threads blocked in
 ``ray.get``; before ``dronefl.cli.leave`` the process then waited for them forever."""
@@ -44,7 +45,11 @@ _WITH_CTRL_C = (
 
 
 @pytest.mark.slow
-def test_ctrl_c_during_a_round_ends_the_run_and_every_process(tmp_path):
+@pytest.mark.parametrize(
+    ("signum", "code", "said"),
+    [(signal.SIGINT, 130, "interrupted"), (signal.SIGTERM, 143, "terminated (SIGTERM)")],
+)
+def test_a_signal_during_a_round_ends_the_run_and_every_process(tmp_path, signum, code, said):
     out = tmp_path / "fl"
     env = {**os.environ, "FLWR_TELEMETRY_ENABLED": "0", "MPLBACKEND": "Agg"}
     argv = ["fl-offline", *TINY, "--rounds", "40", "--methods", "dronefl", "--out", str(out)]
@@ -67,24 +72,24 @@ def test_ctrl_c_during_a_round_ends_the_run_and_every_process(tmp_path):
         assert process.poll() is None, "the run ended before it could be interrupted"
         time.sleep(1.0)  # into the next round
         interrupted = time.monotonic()
-        process.send_signal(signal.SIGINT)
+        process.send_signal(signum)
         try:
             _, err = process.communicate(timeout=EXIT_WITHIN_S)
         except subprocess.TimeoutExpired:
-            pytest.fail(f"dronefl still running {EXIT_WITHIN_S:.0f} s after Ctrl-C")
+            pytest.fail(f"dronefl still running {EXIT_WITHIN_S:.0f} s after {signum.name}")
     finally:
         if process.poll() is None:
             process.kill()
             process.wait()
-    assert process.returncode == 130, err[-3000:]
-    assert "interrupted: finished rounds and episodes are kept" in err
+    assert process.returncode == code, err[-3000:]
+    assert f"{said}: finished rounds and episodes are kept" in err
     assert "Traceback" not in err
     assert time.monotonic() - interrupted < EXIT_WITHIN_S
     # Every process of the run (Ray's included) is gone within 30 s.
     gone_by = time.monotonic() + 30
     while (alive := [p for p in started.values() if _alive(p)]) and time.monotonic() < gone_by:
         time.sleep(0.5)
-    assert not alive, f"left running after Ctrl-C: {[p.name() for p in alive]}"
+    assert not alive, f"left running after {signum.name}: {[p.name() for p in alive]}"
     # What was written is whole: the checkpoint and the history of the finished rounds.
     checkpoint = load_checkpoint(history.parent / "checkpoint.npz", history, "dronefl")
     assert checkpoint.server_round >= 1

@@ -42,6 +42,12 @@ class PerMeasurementRobust(FusionMethod):
     def noise(self):
         return self.r * self.inflation
 
+    def state(self):
+        return self.r.copy()
+
+    def restore(self, state):
+        self.r = np.array(state, dtype=float)
+
     def update(self, batch, mean, covariance):
         mean, covariance = mean.copy(), covariance.copy()
         accepted = np.zeros(len(batch.target), dtype=bool)
