@@ -187,6 +187,20 @@ def test_the_commands_fly_the_recommended_setting_by_default(command, captured, 
     assert config.setting == Setting.load("recommended")
 
 
+def test_the_python_default_is_the_command_s_default(captured, tmp_path):
+    """``TrackConfig(scenario, out)`` flies the same episode as ``dronefl track`` with no
+    option: one default, in the setting files, for both."""
+    from dronefl.config import load_scenario
+    from dronefl.experiments.track import TrackConfig
+
+    _run("track", "--out", str(tmp_path / "o"), "--pretrained", str(tmp_path / "cache"))
+
+    (command,) = captured
+    python = TrackConfig(load_scenario("case2"), tmp_path / "o")
+    assert python.identity() == command.identity()
+    assert python.setting == command.setting == Setting.load()
+
+
 def test_track_flies_the_papers_setting_with_a_field_changed(captured, tmp_path):
     _run("track", "--setting", "paper", "--set", "fusion.method=robust", "--out",
          str(tmp_path / "o"), "--pretrained", str(tmp_path / "cache"))  # fmt: skip
