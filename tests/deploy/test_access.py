@@ -232,3 +232,41 @@ def test_a_peer_without_a_certificate_of_our_ca_cannot_connect(tmp_path):
                 token.undeclare()
             for session in outsiders:
                 session.close()
+
+
+def test_a_compromised_drone_cannot_read_another_drone_s_sensors_or_control(tmp_path):
+    """What the world and the cloud send drone 1 (sensors, control) and the cloud (telemetry)
+    reaches them, never a drone 2 that subscribes to it with its own rules dropped."""
+    certs = make_certificates(tmp_path, DRONES)
+    port = free_port_block(2)
+    at = (f"127.0.0.1:{port}", f"127.0.0.1:{port + 1}")
+    world_config = LinkConfig((at[0],), (), certs.zenoh("world"), DRONES)
+    cloud_config = LinkConfig((at[1],), (at[0],), certs.zenoh("cloud"), DRONES)
+    drone_1_config = LinkConfig((), at, certs.zenoh("drone-1"), DRONES)
+    genuine, stolen = _Heard(), _Heard()
+    secret = {SENSE.format(id=1): "world", CONTROL.format(id=1): "cloud", TELEMETRY: "world"}
+    with Link(world_config) as world, Link(cloud_config) as cloud, Link(drone_1_config) as drone_1:
+        drone_1.subscribe(SENSE.format(id=1), genuine)
+        drone_1.subscribe(CONTROL.format(id=1), genuine)
+        cloud.subscribe(TELEMETRY, genuine)
+        intruder = _compromised(LinkConfig((), at, certs.zenoh("drone-2"), DRONES))
+        subscribers = [
+            intruder.declare_subscriber(
+                key, lambda sample: stolen(str(sample.key_expr), sample.payload.to_bytes())
+            )
+            for key in secret
+        ]
+        senders = {"world": world, "cloud": cloud}
+        try:
+
+            def publish() -> None:
+                for key, sender in secret.items():
+                    senders[sender].put(key, b"secret")
+
+            assert _until(lambda: all(genuine.on(k) for k in secret), 10.0, 0.05, publish)
+            _until(lambda: False, SILENCE_S, 0.05, publish)
+            assert stolen.payloads == {}
+        finally:
+            for subscriber in subscribers:
+                subscriber.undeclare()
+            intruder.close()
