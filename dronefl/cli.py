@@ -27,7 +27,7 @@ from dronefl.config import (
 from dronefl.fl import TrainingError
 from dronefl.logs import LogError
 from dronefl.perception import DETECTORS
-from dronefl.validation import check_one_of
+from dronefl.validation import check_duration, check_one_of, check_seeds
 
 if TYPE_CHECKING:
     from dronefl.experiments.track import TrackConfig
@@ -143,9 +143,12 @@ def simulate(
 
     check_choice(env, ENVIRONMENTS, "--env")
     check_choice(detector, DETECTORS, "--detector")
-    if not duration > 0:
-        raise fail(f"--duration: must be positive, got {duration}")
     spec = load_scenario(scenario)
+    try:
+        check_duration(duration, spec.dt)
+        check_seeds([seed])
+    except ValueError as exc:
+        raise fail(str(exc)) from None
     summary = run(spec, environment=env, duration=duration, seed=seed, out=out, detector=detector)
     typer.echo(format_summary(summary))
     typer.echo(f"wrote {out}/ (drone_<id>.npz, ground_truth.npz, summary.json, topdown.png)")
@@ -234,12 +237,17 @@ FlScenarioOption = Annotated[
 
 
 def _parse_seeds(text: str) -> tuple[int, ...]:
+    """``"0 1 2"`` or ``"0,1,2"`` -> ``(0, 1, 2)``, each in [0, 2^32)."""
     try:
         seeds = tuple(int(s) for s in text.replace(",", " ").split())
     except ValueError:
         raise fail(f"--seeds: {text!r} is not a list of integers") from None
     if not seeds:
         raise fail("--seeds: give at least one seed")
+    try:
+        check_seeds(seeds, "--seeds")
+    except ValueError as exc:
+        raise fail(str(exc)) from None
     return seeds
 
 
@@ -658,17 +666,6 @@ def track(
     typer.echo(f"wrote {out}/ (metrics.json, trajectories.png, timeseries.png, episode.gif)")
 
 
-def _int_list(text: str, option: str) -> tuple[int, ...]:
-    """``"0 1 2"`` or ``"0,1,2"`` -> ``(0, 1, 2)``."""
-    try:
-        values = tuple(int(v) for v in text.replace(",", " ").split())
-    except ValueError:
-        raise fail(f"{option}: expected integers, got {text!r}") from None
-    if not values:
-        raise fail(f"{option}: give at least one value")
-    return values
-
-
 def _scenario_list(text: str, option: str) -> tuple[Scenario, ...]:
     """``"case1 case2 my.yaml"`` -> the validated scenarios."""
     names = text.replace(",", " ").split()
@@ -728,7 +725,7 @@ def table1(
         scenario=specs[0], setting=_setting(setting, set_), duration=duration, detector=detector,
         pretrained=pretrained, out=out,
     )  # fmt: skip
-    seed_list = _int_list(seeds, "--seeds")
+    seed_list = _parse_seeds(seeds)
     try:
         episode_configs(base, specs, chosen, seed_list, label_ablation)  # each one checked
     except ValueError as exc:  # a method that cannot fly these settings, a bad seed

@@ -62,6 +62,7 @@ from dronefl.io import atomic_savez
 from dronefl.learners import LEARNERS
 from dronefl.roles import CloudNode, Received
 from dronefl.settings import Setting, SettingError
+from dronefl.validation import check_positive
 from dronefl.wire import (
     ControlMessage,
     NoiseReportMessage,
@@ -114,8 +115,7 @@ class CloudSettings:
         except SettingError as exc:
             raise CloudError(f"run config: {exc}") from None
         for name in ("duration", "deadline_ms", "start_timeout", "round_timeout"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"--{name.replace('_', '-')}: must be positive")
+            check_positive(getattr(self, name), f"--{name.replace('_', '-')}")
         check_endpoint(self.listen, "--listen")
         check_endpoint(self.connect, "--connect")
 

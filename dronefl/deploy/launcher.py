@@ -21,7 +21,6 @@ drone i's SuperNode runtime API B+10+i.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from dataclasses import asdict, dataclass, field
@@ -39,7 +38,7 @@ from dronefl.deploy.results import DeploymentMetrics, RunInfo, deployment_metric
 from dronefl.io import atomic_write_text
 from dronefl.models.model import PredictorConfig
 from dronefl.settings import Setting
-from dronefl.validation import check_one_of
+from dronefl.validation import check_duration, check_one_of, check_positive, check_seeds
 
 HOST = "127.0.0.1"
 #: The file in ``--out`` with the episode's resolved setting, which every process reads.
@@ -79,12 +78,9 @@ class DeployConfig:
                 "learning.labels: a deployed cloud does not know the truth; use smoothed or "
                 "filtered"
             )
-        for name in ("duration", "deadline_ms", "start_timeout"):
-            value = getattr(self, name)
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"--{name.replace('_', '-')}: must be positive, got {value}")
-        if not 0 <= self.seed < 2**32:
-            raise ValueError(f"--seed: must be in [0, 2^32), got {self.seed}")
+        for name in ("deadline_ms", "start_timeout"):
+            check_positive(getattr(self, name), f"--{name.replace('_', '-')}")
+        check_seeds([self.seed])
         if not 1024 <= self.base_port <= 65000:
             raise ValueError(f"--base-port: must be in [1024, 65000], got {self.base_port}")
         if self.insecure and self.certs is not None:
@@ -124,6 +120,7 @@ def preflight(config: DeployConfig) -> Scenario:
     given; returns the scenario. :class:`~dronefl.deploy.processes.DeployError` or
     ``ValueError`` naming what is wrong."""
     scenario = load_scenario(config.scenario)
+    check_duration(config.duration, scenario.dt)
     for what, port in config.ports(scenario).items():
         if port_in_use(HOST, port):
             raise DeployError(f"port {port} ({what}) is already in use; pick another --base-port")

@@ -52,6 +52,7 @@ from dronefl.report.fl_plots import plot_altitude, plot_fig5
 from dronefl.report.paired import paired_comparison, paired_markdown
 from dronefl.results.fl import Curve, MethodResult, OfflineResults, SeedResult
 from dronefl.settings import Setting
+from dronefl.validation import check_duration, check_seeds
 
 #: Called with each finished round (e.g. to advance a progress bar).
 OnRound = Callable[[RoundRecord], None]
@@ -94,13 +95,11 @@ class OfflineConfig:
             raise ValueError(f"--rounds: must be in [1, {MAX_ROUNDS}], got {self.rounds}")
         if not self.seeds or len(set(self.seeds)) != len(self.seeds):
             raise ValueError(f"--seeds: need distinct seeds, got {list(self.seeds)}")
-        if any(not 0 <= s < 2**32 for s in self.seeds):
-            raise ValueError(f"--seeds: must be in [0, 2^32), got {list(self.seeds)}")
+        check_seeds(self.seeds, "--seeds")
         unknown = [m for m in self.methods if m not in METHODS]
         if unknown:
             raise ValueError(f"--methods: unknown {unknown}; choose from {list(METHODS)}")
-        if not (math.isfinite(self.duration) and 1.0 <= self.duration <= 86400.0):
-            raise ValueError(f"--duration: must be in [1, 86400] s, got {self.duration}")
+        check_duration(self.duration, 1.0)
         if not 1 <= self.stride <= 1000:
             raise ValueError(f"--stride: must be in [1, 1000], got {self.stride}")
 

@@ -57,6 +57,7 @@ from dronefl.models.windows import (
 )
 from dronefl.perception.recorded_frames import render_run
 from dronefl.report.fl_plots import plot_image_baseline
+from dronefl.validation import check_positive
 
 #: The two recordings: where the models learn and where they are deployed.
 ENVIRONMENTS = ("crop_field", "orchard")
@@ -87,8 +88,7 @@ class ImageBaselineConfig:
 
     def __post_init__(self) -> None:
         for name in ("duration", "lr"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"--{name}: must be positive")
+            check_positive(getattr(self, name), f"--{name}")
         for name in ("epochs", "batch_size", "past_steps", "stride", "frame_px"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')}: must be >= 1")

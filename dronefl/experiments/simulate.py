@@ -23,6 +23,7 @@ from dronefl.progress import progress_bar
 from dronefl.serialize import save_result
 from dronefl.sim.pilot import PilotController
 from dronefl.sim.world import World
+from dronefl.validation import check_duration, check_seeds
 
 
 @dataclass(frozen=True)
@@ -76,8 +77,8 @@ def simulate(
     ``wall_seconds``, ``realtime_factor`` and per drone the ``detection_rate`` (fraction of
     (step, assigned target) pairs with a detection) and ``detection_rate_per_target``.
     """
-    if duration <= 0:
-        raise ValueError(f"--duration: must be positive, got {duration}")
+    check_duration(duration, scenario.dt)
+    check_seeds([seed])
     world = World(scenario, environment, seed)
     det = make_detector(detector, world)
     pilot = PilotController(world.rng("pilot"))

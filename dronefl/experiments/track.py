@@ -35,7 +35,6 @@ it, bit-identically but for the wall-clock timings.
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -76,12 +75,10 @@ from dronefl.serialize import from_json, to_json
 from dronefl.settings import Setting
 from dronefl.sim.world import World
 from dronefl.tracking import Fuser, FusionConfig, set_distances
-from dronefl.validation import check_one_of
+from dronefl.validation import check_duration, check_one_of, check_seeds
 from dronefl.wire import ControlMessage, raw_inputs_message
 
 TRACK_METHODS: tuple[str, ...] = tuple(LEARNERS)
-#: The longest episode, s of simulated time (a day): a longer one is refused before any work.
-MAX_DURATION = 86400.0
 #: :class:`TrackConfig` fields that say how an episode is run, not what runs.
 NOT_IDENTITY: tuple[str, ...] = ("out", "pretrained", "progress", "animate", "resume")
 
@@ -117,14 +114,8 @@ class TrackConfig:
         check_one_of(self.environment, ENVIRONMENTS, "--env")
         check_one_of(self.detector, DETECTORS, "--detector")
         check_one_of(self.runtime, RUNTIMES, "runtime")
-        if not 0 <= self.seed < 2**32:
-            raise ValueError(f"--seed: must be in [0, 2^32), got {self.seed}")
-        dt = self.scenario.dt
-        if not (math.isfinite(self.duration) and dt <= self.duration <= MAX_DURATION):
-            raise ValueError(
-                f"--duration: must be between one step ({dt:g} s) and {MAX_DURATION:g} s, "
-                f"got {self.duration}"
-            )
+        check_seeds([self.seed])
+        check_duration(self.duration, self.scenario.dt)
         if self.learner.model_input == "frames" and self.detector != "yolo":
             raise ValueError(
                 f"--method {self.method}: its model reads camera frames, which only the vision "

@@ -214,10 +214,10 @@ def test_the_setting_sets_the_episode_models_and_their_updates(tmp_path):
 @pytest.mark.parametrize(
     ("field", "value", "message"),
     [
-        ("duration", float("inf"), "--duration: must be between one step"),
-        ("duration", float("nan"), "--duration: must be between one step"),
-        ("duration", 0.001, "--duration: must be between one step"),
-        ("duration", 1e6, "--duration: must be between one step"),
+        ("duration", float("inf"), "--duration: must be between 0.2 s and 86400 s"),
+        ("duration", float("nan"), "--duration: must be between 0.2 s and 86400 s"),
+        ("duration", 0.001, "--duration: must be between 0.2 s and 86400 s"),
+        ("duration", 1e6, "--duration: must be between 0.2 s and 86400 s"),
         ("seed", -2, "--seed: must be in"),
         ("environment", "desert", "--env: 'desert' is not one of"),
         ("detector", "radar", "--detector: 'radar' is not one of"),
