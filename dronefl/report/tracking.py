@@ -83,7 +83,8 @@ def _timeseries(scenario, log, path: Path, method: str) -> None:
         for step in log.fl_steps:
             ax.axvline(log.t[step], color="C3", lw=0.8, ls="--")
         ax.set_ylabel(label)
-        if log_scale:
+        values = np.asarray(values, dtype=float)
+        if log_scale and (np.isfinite(values) & (values > 0)).any():  # else: a linear axis
             ax.set_yscale("log")
     made = np.isfinite(errors)
     if (made & ~log.sent).any():  # drone.detected_only: the error of what reached the cloud too

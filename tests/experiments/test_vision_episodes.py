@@ -22,8 +22,10 @@ from dronefl.models.model import build_model, count_parameters
 from dronefl.perception import make_detector
 from dronefl.settings import Setting
 
-#: A model update at 5 s, every drone learning every label (Case 1: one drone per target).
-OVERRIDES = ["learning.period=5", "learning.label_drones=all"]
+#: A model update at 5 s, every drone learning every label (Case 1: one drone per target),
+#: labels from the truth: the freshly initialised image model's predictions are too far off
+#: for the fusion to accept any, so there would be no fused track to label from.
+OVERRIDES = ["learning.period=5", "learning.label_drones=all", "learning.labels=ground_truth"]
 SETTING = Setting.load("recommended", OVERRIDES)
 TRACK = ["track", "--scenario", "case1", "--method", "centralized-image", "--detector", "yolo",
          "--duration", "10", "--env", "crop_field", "--no-animate",

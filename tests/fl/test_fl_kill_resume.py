@@ -108,9 +108,11 @@ def test_centralized_run_killed_four_times_resumes_bit_identical(tmp_path, cli_p
 
 @pytest.mark.slow
 def test_federated_run_with_faults_killed_mid_round_resumes_bit_identical(tmp_path, cli_process):
-    """FedAvg through Flower's simulation engine, with drone faults in rounds 2-4 (see
-    test_fl_dropout.py), killed after round 3 trained but before it was recorded."""
-    method = ["--methods", "fedavg", "--rounds", "4", "--faults", "2:1:raise,3:2:nan,4:1:shape"]
+    """FedAvg through Flower's simulation engine (in the paper's setting, as the README's
+    baselines train), with drone faults in rounds 2-4 (see test_fl_dropout.py), killed after
+    round 3 trained but before it was recorded."""
+    method = ["--methods", "fedavg", "--rounds", "4", "--setting", "paper"]
+    method += ["--faults", "2:1:raise,3:2:nan,4:1:shape"]
     assert fl_offline(cli_process, tmp_path / "reference", *method) == 0
     reference = outcome(tmp_path / "reference", "fedavg")
     assert [h["rejected"] for h in reference[0]] == [
