@@ -5,7 +5,9 @@ from __future__ import annotations
 import os
 import random
 import socket
+import subprocess
 import sys
+import time
 from pathlib import Path
 
 import psutil
@@ -60,3 +62,13 @@ def survivors(mark: str) -> list[str]:
         except psutil.Error:
             continue
     return left
+
+
+def wait_for_line(path: Path, text: str, launcher: subprocess.Popen, seconds: float) -> None:
+    """Wait until the file ``path`` holds ``text``; fail once ``launcher`` ends or ``seconds``
+    pass."""
+    deadline = time.monotonic() + seconds
+    while not (path.is_file() and text in path.read_text()):
+        assert launcher.poll() is None, f"the deployment ended before {text!r}"
+        assert time.monotonic() < deadline, f"no {text!r} in {path} within {seconds:.0f} s"
+        time.sleep(0.02)
